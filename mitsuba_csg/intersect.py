@@ -1,0 +1,269 @@
+"""Ray intersection of the canonical primitives, written once in Dr.Jit for every backend.
+
+Each canonical solid is bounded, so along a full line its boundary events alternate
+enter, exit, enter, ... starting with an enter. `first_event` therefore returns the
+first event strictly after `t_start` and classifies it by the parity of its index.
+Events are recomputed from the unchanged ray every time, so the same root gives the same
+float bit for bit, and "strictly after" needs no epsilon and always makes progress.
+
+Faces: sphere 0; box 2*axis + (1 on the + side); cone 0 side, 1 bottom, 2 top; torus 0;
+convex polyhedron: the plane's index within the primitive.
+"""
+from __future__ import annotations
+
+import drjit as dr
+
+from . import primitives as P
+
+ENTER, EXIT, MISS = 0, 1, 2
+
+# Acceptance slack for cone side/cap candidates near the rim (canonical units).
+_RIM_SLACK = 1e-5
+# Newton-bisection steps per bracketed root of the torus quartic (and its derivative).
+_TORUS_STEPS = 14
+
+
+class Backend:
+    """The detached Dr.Jit types of one backend (drjit.llvm or drjit.cuda)."""
+
+    def __init__(self, module):
+        self.Float, self.UInt32, self.Bool = module.Float, module.UInt32, module.Bool
+        self.Array3f, self.Array4f = module.Array3f, module.Array4f
+        self.module = module
+
+
+def _interval_event(b, near, far, near_face, far_face, t_start):
+    """First event after t_start of a convex interval [near, far] (empty if near >= far)."""
+    hit = near < far
+    take_near = hit & (near > t_start)
+    take_far = hit & ~take_near & (far > t_start)
+    t = dr.select(take_near, near, dr.select(take_far, far, dr.inf))
+    face = dr.select(take_near, near_face, far_face)
+    cls = dr.select(take_near, b.UInt32(ENTER), dr.select(take_far, b.UInt32(EXIT), b.UInt32(MISS)))
+    return t, face, cls
+
+
+def _sphere(b, o, d):
+    a = dr.squared_norm(d)
+    tc = -dr.dot(o, d) / a
+    pc = o + tc * d                      # closest approach: robust for far-away origins
+    h2 = (1.0 - dr.squared_norm(pc)) / a
+    h = dr.sqrt(dr.maximum(h2, 0.0))
+    near = dr.select(h2 > 0, tc - h, dr.inf)
+    far = dr.select(h2 > 0, tc + h, -dr.inf)
+    return near, far
+
+
+def _box(b, o, d):
+    near, far = dr.full(b.Float, -dr.inf, dr.width(o.x)), dr.full(b.Float, dr.inf, dr.width(o.x))
+    near_face = dr.zeros(b.UInt32, dr.width(o.x))
+    far_face = dr.zeros(b.UInt32, dr.width(o.x))
+    for axis in range(3):
+        oa, da = o[axis], d[axis]
+        parallel = da == 0
+        inv = 1.0 / dr.select(parallel, 1.0, da)
+        t_minus, t_plus = (-1.0 - oa) * inv, (1.0 - oa) * inv
+        inside_slab = dr.abs(oa) <= 1.0
+        lo = dr.select(parallel, dr.select(inside_slab, -dr.inf, dr.inf), dr.minimum(t_minus, t_plus))
+        hi = dr.select(parallel, dr.select(inside_slab, dr.inf, -dr.inf), dr.maximum(t_minus, t_plus))
+        enter_face = b.UInt32(2 * axis) + dr.select(da < 0, 1, 0)   # d>0 enters the - face
+        exit_face = b.UInt32(2 * axis) + dr.select(da < 0, 0, 1)
+        better_near, better_far = lo > near, hi < far
+        near = dr.select(better_near, lo, near)
+        near_face = dr.select(better_near, enter_face, near_face)
+        far = dr.select(better_far, hi, far)
+        far_face = dr.select(better_far, exit_face, far_face)
+    return near, far, near_face, far_face
+
+
+def _cone(b, o, d, param):
+    # Side: x^2 + y^2 = r(z)^2 with r(z) = a + c z, |z| <= 1; caps at z = -1 (radius p0), +1 (p1).
+    p0, p1 = param[0], param[1]
+    a, c = 0.5 * (p0 + p1), 0.5 * (p1 - p0)
+    r_o = a + c * o.z
+    qa = d.x * d.x + d.y * d.y - c * c * d.z * d.z
+    qb = 2.0 * (o.x * d.x + o.y * d.y - c * d.z * r_o)
+    qc = o.x * o.x + o.y * o.y - r_o * r_o
+    disc = qb * qb - 4.0 * qa * qc
+    sq = dr.sqrt(dr.maximum(disc, 0.0))
+    q = -0.5 * (qb + dr.copysign(sq, qb))          # stable roots; qa == 0 gives the linear root
+    roots = (q / qa, qc / q)
+    near, far = dr.full(b.Float, dr.inf, dr.width(qa)), dr.full(b.Float, -dr.inf, dr.width(qa))
+    near_face = dr.zeros(b.UInt32, dr.width(qa))
+    far_face = dr.zeros(b.UInt32, dr.width(qa))
+    candidates = []
+    for t in roots:
+        z = o.z + t * d.z
+        ok = (disc >= 0) & (dr.abs(z) <= 1.0 + _RIM_SLACK) & (a + c * z >= -_RIM_SLACK) & dr.isfinite(t)
+        candidates.append((t, ok, 0))
+    for face, zc, rc in ((1, -1.0, p0), (2, 1.0, p1)):
+        t = (zc - o.z) / d.z
+        x, y = o.x + t * d.x, o.y + t * d.y
+        ok = (d.z != 0) & (x * x + y * y <= rc * rc * (1.0 + _RIM_SLACK) + _RIM_SLACK * _RIM_SLACK) & (rc > 0)
+        candidates.append((t, ok, face))
+    for t, ok, face in candidates:
+        better_near, better_far = ok & (t < near), ok & (t > far)
+        near = dr.select(better_near, t, near)
+        near_face = dr.select(better_near, b.UInt32(face), near_face)
+        far = dr.select(better_far, t, far)
+        far_face = dr.select(better_far, b.UInt32(face), far_face)
+    return near, far, near_face, far_face
+
+
+@dr.syntax
+def _convex(b, o, d, plane_buf, start, count):
+    near = dr.full(b.Float, -dr.inf, dr.width(start))
+    far = dr.full(b.Float, dr.inf, dr.width(start))
+    near_face = dr.zeros(b.UInt32, dr.width(start))
+    far_face = dr.zeros(b.UInt32, dr.width(start))
+    k = dr.zeros(b.UInt32, dr.width(start))
+    while dr.hint(k < count, label="csg_convex_planes"):
+        plane = dr.gather(b.Array4f, plane_buf, start + k)
+        n = b.Array3f(plane.x, plane.y, plane.z)
+        denom = dr.dot(n, d)
+        dist = plane.w - dr.dot(n, o)
+        t = dist / denom
+        entering, leaving = denom < 0, denom > 0
+        better_near = entering & (t > near)
+        near = dr.select(better_near, t, near)
+        near_face = dr.select(better_near, k, near_face)
+        better_far = leaving & (t < far)
+        far = dr.select(better_far, t, far)
+        far_face = dr.select(better_far, k, far_face)
+        outside_parallel = (denom == 0) & (dist < 0)
+        near = dr.select(outside_parallel, dr.inf, near)
+        k += 1
+    return near, far, near_face, far_face
+
+
+# ---- Torus: root isolation by derivatives, then safeguarded Newton on each bracket ----
+
+def _poly(coeffs, x):
+    acc = coeffs[0]
+    for c in coeffs[1:]:
+        acc = dr.fma(acc, x, c)
+    return acc
+
+
+def _bracketed_root(f, df, lo, hi, valid):
+    """Root of a monotone polynomial on [lo, hi] if its ends differ in sign, else (x, False)."""
+    f_lo, f_hi = _poly(f, lo), _poly(f, hi)
+    has_root = valid & (lo < hi) & ((f_lo <= 0) != (f_hi <= 0))
+    lo_neg = f_lo <= 0
+    x = 0.5 * (lo + hi)
+    for _ in range(_TORUS_STEPS):
+        fx = _poly(f, x)
+        same_as_lo = (fx <= 0) == lo_neg
+        lo = dr.select(same_as_lo, x, lo)
+        hi = dr.select(same_as_lo, hi, x)
+        step = x - fx / _poly(df, x)
+        x = dr.select((step > lo) & (step < hi), step, 0.5 * (lo + hi))
+    return x, has_root
+
+
+def _torus_events(b, o, d, param):
+    """The up-to-four sorted boundary events of the canonical torus (major 1, minor param[0])."""
+    k = param[0]
+    width = dr.width(k)
+    inv_len = dr.rsqrt(dr.squared_norm(d))
+    dn = d * inv_len
+    t0 = -dr.dot(o, dn) * inv_len          # ray parameter closest to the torus centre
+    oc = o + t0 * d
+    m = dr.squared_norm(oc)
+    reach2 = (1.0 + k) * (1.0 + k) - m
+    reach = dr.sqrt(dr.maximum(reach2, 0.0)) * 1.001 + 1e-3   # ends strictly outside the torus
+    valid = reach2 > 0
+    bb = dr.dot(oc, dn)
+    e = m + 1.0 - k * k
+    u = dn.x * dn.x + dn.y * dn.y
+    v = oc.x * dn.x + oc.y * dn.y
+    w0 = oc.x * oc.x + oc.y * oc.y
+    one = dr.full(b.Float, 1.0, width)
+    f = [one, 4.0 * bb, 4.0 * bb * bb + 2.0 * e - 4.0 * u, 4.0 * bb * e - 8.0 * v, e * e - 4.0 * w0]
+    df = [4.0 * one, 3.0 * f[1], 2.0 * f[2], f[3]]
+    ddf = [12.0 * one, 6.0 * f[1], 2.0 * f[2]]
+    # f'' roots (quadratic, monic up to 12): split [-reach, reach] into monotone pieces of f'.
+    disc = ddf[1] * ddf[1] - 4.0 * ddf[0] * ddf[2]
+    sq = dr.sqrt(dr.maximum(disc, 0.0))
+    s1 = dr.clip((-ddf[1] - sq) / (2.0 * ddf[0]), -reach, reach)
+    s2 = dr.clip((-ddf[1] + sq) / (2.0 * ddf[0]), -reach, reach)
+    s1 = dr.select(disc > 0, s1, -reach)
+    s2 = dr.select(disc > 0, s2, -reach)
+    # f' roots: split points of f (a missing root leaves a harmless empty piece).
+    splits = []
+    for lo, hi in ((-reach, s1), (s1, s2), (s2, reach)):
+        x, ok = _bracketed_root(df, ddf, lo, hi, valid)
+        splits.append(dr.select(ok, x, lo))
+    ends = [-reach, *splits, reach]
+    events, oks = [], []
+    for lo, hi in zip(ends[:-1], ends[1:]):
+        x, ok = _bracketed_root(f, df, lo, dr.maximum(lo, hi), valid)
+        events.append(t0 + x * inv_len)
+        oks.append(ok)
+    return events, oks
+
+
+def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o_world, d_world, t_start):
+    """(t, face, class) of the first boundary event of one primitive after t_start (per lane)."""
+    o = b.Array3f(dr.dot(xf_rows[0], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)),
+                  dr.dot(xf_rows[1], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)),
+                  dr.dot(xf_rows[2], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)))
+    d = b.Array3f(dr.dot(b.Array3f(xf_rows[0].x, xf_rows[0].y, xf_rows[0].z), d_world),
+                  dr.dot(b.Array3f(xf_rows[1].x, xf_rows[1].y, xf_rows[1].z), d_world),
+                  dr.dot(b.Array3f(xf_rows[2].x, xf_rows[2].y, xf_rows[2].z), d_world))
+    return _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d, t_start)
+
+
+@dr.syntax
+def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d, t_start):
+    width = dr.width(t_start)
+    near = dr.full(b.Float, dr.inf, width)
+    far = dr.full(b.Float, -dr.inf, width)
+    near_face = dr.zeros(b.UInt32, width)
+    far_face = dr.zeros(b.UInt32, width)
+    t = dr.full(b.Float, dr.inf, width)
+    face = dr.zeros(b.UInt32, width)
+    cls = dr.full(b.UInt32, MISS, width)
+    if shape == P.SPHERE:
+        near, far = _sphere(b, o, d)
+    elif shape == P.BOX:
+        near, far, near_face, far_face = _box(b, o, d)
+    elif shape == P.CONE:
+        near, far, near_face, far_face = _cone(b, o, d, param)
+    elif shape == P.CONVEX:
+        near, far, near_face, far_face = _convex(b, o, d, plane_buf, plane_start, plane_count)
+    else:
+        # Torus: pick the first root after t_start; its parity among roots is its class.
+        events, oks = _torus_events(b, o, d, param)
+        seen = dr.zeros(b.UInt32, width)
+        found = dr.zeros(b.Bool, width)
+        for ev, ok in zip(events, oks):
+            take = ok & ~found & (ev > t_start)
+            t = dr.select(take, ev, t)
+            cls = dr.select(take, seen & 1, cls)
+            found |= take
+            seen += dr.select(ok, 1, 0)
+    if shape != P.TORUS:
+        t, face, cls = _interval_event(b, near, far, near_face, far_face, t_start)
+    return t, face, cls
+
+
+def local_normal(b, shape, param, plane_buf, plane_start, p, face):
+    """Outward (unnormalized) normal of a canonical primitive at canonical point p on `face`."""
+    n = b.Array3f(p)
+    axis_n = b.Array3f(dr.select(face // 2 == 0, 1.0, 0.0), dr.select(face // 2 == 1, 1.0, 0.0),
+                       dr.select(face // 2 == 2, 1.0, 0.0))
+    box_n = dr.select((face & 1) == 1, axis_n, -axis_n)
+    a, c = 0.5 * (param[0] + param[1]), 0.5 * (param[1] - param[0])
+    cone_side = b.Array3f(p.x, p.y, -c * (a + c * p.z))
+    cone_n = dr.select(face == 0, cone_side, b.Array3f(0.0, 0.0, dr.select(face == 1, -1.0, 1.0)))
+    k = param[0]
+    s = dr.squared_norm(p) + 1.0 - k * k
+    torus_n = b.Array3f(s * p.x - 2.0 * p.x, s * p.y - 2.0 * p.y, s * p.z)
+    plane = dr.gather(b.Array4f, plane_buf, plane_start + face, shape == P.CONVEX)
+    convex_n = b.Array3f(plane.x, plane.y, plane.z)
+    n = dr.select(shape == P.BOX, box_n, n)
+    n = dr.select(shape == P.CONE, cone_n, n)
+    n = dr.select(shape == P.TORUS, torus_n, n)
+    n = dr.select(shape == P.CONVEX, convex_n, n)
+    return n

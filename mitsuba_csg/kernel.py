@@ -1,0 +1,277 @@
+"""The single-hit CSG automaton (Kensler's state tables, iterated as in Bogolepov et al. 2013).
+
+One symbolic Dr.Jit loop per ray batch walks the binary tree with two per-lane stacks:
+a hit stack (t, leaf node, hit info) and a state stack (what to do when a subtree's hit
+comes back). Each iteration does at most one GoTo step (one box test and at most one
+primitive intersection, or a descent), one Classify step (a state-table lookup) and one
+Return step (pop and hand the hit to the parent), so lanes stay in step.
+
+Hit info word: bits 0-1 class (enter / exit / miss) relative to the subtree the hit was
+returned from, bit 2 flips the primitive's normal (complemented leaf or the right side of
+a difference, an odd number of times), bits 3.. the face within the primitive.
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+import drjit as dr
+import numpy as np
+
+from . import intersect as X
+from .errors import TreeTooDeepError
+from .intersect import ENTER, EXIT, MISS, Backend
+from .lowering import K_DIFFERENCE, K_INTERSECTION, K_LEAF, K_UNION, FlatTree
+
+# Automaton states (GoTo states: bit 0 = right child, bit 1 = re-intersection after a loop).
+GOTO_L_FRESH, GOTO_R_FRESH, GOTO_L_LOOP, GOTO_R_LOOP, CLASSIFY, RETURN, DONE = range(7)
+# What a pushed frame does when the subtree's hit comes back.
+SAVE_L, LOAD_L, LOAD_R = range(3)
+
+# Actions of the state tables.
+RET_L, RET_R, RET_CLOSER, RET_L_ELSE_LOOP_R, RET_R_ELSE_LOOP_L, LOOP_CLOSER, RET_MISS = range(7)
+_E, _X, _M = ENTER, EXIT, MISS
+# Kensler's tables as refined by Bogolepov et al.; union Exit/Exit loops the closer child
+# (returning the farther exit is wrong once a child is non-convex or disjoint). A difference
+# uses the intersection table with the right child's class complemented.
+STATE_TABLE = {
+    K_UNION: {(_E, _E): RET_CLOSER, (_E, _X): RET_R_ELSE_LOOP_L, (_E, _M): RET_L,
+              (_X, _E): RET_L_ELSE_LOOP_R, (_X, _X): LOOP_CLOSER, (_X, _M): RET_L,
+              (_M, _E): RET_R, (_M, _X): RET_R, (_M, _M): RET_MISS},
+    K_INTERSECTION: {(_E, _E): LOOP_CLOSER, (_E, _X): RET_L_ELSE_LOOP_R, (_E, _M): RET_MISS,
+                     (_X, _E): RET_R_ELSE_LOOP_L, (_X, _X): RET_CLOSER, (_X, _M): RET_MISS,
+                     (_M, _E): RET_MISS, (_M, _X): RET_MISS, (_M, _M): RET_MISS},
+}
+_TABLE_ARRAY = np.array([[STATE_TABLE[op][(cl, cr)] for cl in range(3) for cr in range(3)]
+                         for op in (K_UNION, K_INTERSECTION)], dtype=np.uint32).ravel()
+
+NO_LEAF = 0xFFFFFFFF
+MAX_STACK = 1024
+FLIP_BIT = 4
+
+
+def backend_of(array) -> Backend:
+    """The detached backend module (drjit.llvm / drjit.cuda) of a Dr.Jit array or type."""
+    tp = array if isinstance(array, type) else type(array)
+    backend = dr.backend_v(tp)
+    if backend == dr.JitBackend.LLVM:
+        name = "drjit.llvm"
+    elif backend == dr.JitBackend.CUDA:
+        name = "drjit.cuda"
+    else:
+        raise TypeError(f"mitsuba-csg kernels need a JIT array type (LLVM or CUDA), got {tp.__name__}")
+    return Backend(sys.modules[name])
+
+
+@dataclass
+class KernelTree:
+    """A FlatTree on the device: structure-of-arrays with explicit strides."""
+    b: Backend
+    node_flags: object      # UInt32: kind | negative << 2
+    node_left: object       # UInt32: left child; leaf: primitive index
+    node_right: object
+    node_parent: object
+    node_box: object        # Float, 6 per node: lower xyz, upper xyz (padded outwards)
+    prim_shape: object      # UInt32
+    prim_xf: object         # Float, 12 per primitive: world -> canonical rows
+    prim_param: object      # Float, 2 per primitive
+    prim_planes: object     # UInt32, 2 per primitive: start, count
+    planes: object          # Float, 4 per plane
+    table: object           # UInt32 state table, 18 entries
+    root: int
+    root_is_leaf: bool
+    stack_size: int
+    num_nodes: int
+    num_prims: int
+    max_iterations: int
+
+
+def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None) -> KernelTree:
+    """Copy a FlatTree to device arrays (float32). A lone leaf gets a virtual union root."""
+    b = backend
+    kind, neg = flat.node_kind.copy(), flat.node_negative.copy()
+    left, right, parent = flat.node_left.copy(), flat.node_right.copy(), flat.node_parent.copy()
+    lower, upper = flat.node_lower.copy(), flat.node_upper.copy()
+    root_is_leaf = bool(kind[flat.root] == K_LEAF)
+    if root_is_leaf:
+        # root' = union(leaf, nothing): the dummy leaf has an empty box and always misses.
+        n = len(kind)
+        kind = np.concatenate([kind, [K_UNION, K_LEAF]])
+        neg = np.concatenate([neg, [False, False]])
+        left = np.concatenate([left, [flat.root, 0]])
+        right = np.concatenate([right, [n + 1, -1]])
+        parent = np.concatenate([parent, [-1, n]])
+        parent[flat.root] = n
+        lower = np.vstack([lower, lower[flat.root], [np.inf] * 3])
+        upper = np.vstack([upper, upper[flat.root], [-np.inf] * 3])
+        root = n
+    else:
+        root = flat.root
+    height = int(flat.node_height.max(initial=0)) + (1 if root_is_leaf else 0)
+    if height > MAX_STACK:
+        raise TreeTooDeepError(f"the CSG tree is {height} operations deep; the kernel allows {MAX_STACK}. "
+                               "Optimize it (csg.optimize) or restructure it.")
+    # Pad boxes outwards so float32 rounding never culls a hit on the box boundary.
+    with np.errstate(invalid="ignore", over="ignore"):
+        pad = 1e-5 * (upper - lower) + 1e-6 * np.maximum(np.abs(lower), np.abs(upper)) + 1e-30
+    pad = np.where(np.isfinite(pad) & (upper >= lower), pad, 0.0)
+    box = np.hstack([lower - pad, upper + pad]).astype(np.float32)
+    flags = kind.astype(np.uint32) | (neg.astype(np.uint32) << 2)
+    u32 = lambda a: b.UInt32(np.asarray(a, dtype=np.int64).astype(np.uint32))  # noqa: E731
+    planes = flat.planes if len(flat.planes) else np.zeros((1, 4))
+    n_nodes = len(kind)
+    if max_iterations is None:
+        # Every loop step consumes a distinct primitive event; each event can be re-derived
+        # once per ancestor. This bound is far above any real ray and only stops runaways.
+        max_iterations = int(min(2**31 - 1, 64 + 8 * n_nodes * (height + 2)))
+    return KernelTree(
+        b=b, node_flags=u32(flags), node_left=u32(left), node_right=u32(right), node_parent=u32(parent),
+        node_box=b.Float(box.ravel()), prim_shape=u32(flat.prim_shape),
+        prim_xf=b.Float(flat.prim_to_canonical.astype(np.float32).ravel()),
+        prim_param=b.Float(flat.prim_param.astype(np.float32).ravel()),
+        prim_planes=u32(np.stack([flat.prim_plane_start, flat.prim_plane_count], 1).ravel()),
+        planes=b.Float(planes.astype(np.float32).ravel()), table=b.UInt32(_TABLE_ARRAY),
+        root=int(root), root_is_leaf=root_is_leaf, stack_size=max(1, height), num_nodes=n_nodes,
+        num_prims=flat.num_prims, max_iterations=max_iterations)
+
+
+def _box_hit(b, tree, node, o, inv_d, t_start, tmax):
+    lo = dr.gather(b.Array3f, tree.node_box, node * 2)
+    hi = dr.gather(b.Array3f, tree.node_box, node * 2 + 1)
+    t1, t2 = (lo - o) * inv_d, (hi - o) * inv_d
+    near = dr.max(dr.minimum(t1, t2))
+    far = dr.min(dr.maximum(t1, t2))
+    return (near <= far) & (far >= t_start) & (near <= tmax)
+
+
+def _leaf_hit(b, tree, leaf, o, d, t_start):
+    """(t, info) of a leaf node's first event after t_start, complement applied."""
+    flags = dr.gather(b.UInt32, tree.node_flags, leaf)
+    prim = dr.gather(b.UInt32, tree.node_left, leaf)
+    shape = dr.gather(b.UInt32, tree.prim_shape, prim)
+    rows = [dr.gather(b.Array4f, tree.prim_xf, prim * 3 + r) for r in range(3)]
+    param = dr.gather(b.module.Array2f, tree.prim_param, prim)
+    planes = dr.gather(b.module.Array2u, tree.prim_planes, prim)
+    t, face, cls = X.first_event(b, shape, rows, param, tree.planes, planes[0], planes[1], o, d, t_start)
+    complemented = (flags & 4) != 0
+    # A complemented leaf swaps enter/exit; missing it means being inside it forever.
+    cls = dr.select(complemented, dr.select(cls == MISS, EXIT, cls ^ 1), cls)
+    info = cls | dr.select(complemented, FLIP_BIT, 0) | (face << 3)
+    return t, info
+
+
+@dr.syntax
+def traverse(tree: KernelTree, o, d, tmin, tmax):
+    """Run the automaton. Returns (t, leaf node, info, finished) per lane, all detached."""
+    b = tree.b
+    n = dr.width(o.x)
+    inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
+
+    # ---- Loop state (all full width: see the Dr.Jit 1.5 local-index bug in DESIGN.md) ----
+    node = dr.full(b.UInt32, tree.root, n)         # operation node whose children are in play
+    t_start = b.Float(tmin)                         # re-intersection starts strictly after this
+    t_l, leaf_l, info_l = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
+    t_r, leaf_r, info_r = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
+    state = dr.full(b.UInt32, GOTO_L_FRESH, n)
+    sp = dr.zeros(b.UInt32, n)                      # shared depth of both stacks
+    steps = dr.zeros(b.UInt32, n)
+    hit_t = dr.alloc_local(b.Float, tree.stack_size)       # hit stack: t (or a saved t_start)
+    hit_leaf = dr.alloc_local(b.UInt32, tree.stack_size)   #            leaf node
+    hit_info = dr.alloc_local(b.UInt32, tree.stack_size)   #            info word
+    frame = dr.alloc_local(b.UInt32, tree.stack_size)      # state stack: SAVE_L / LOAD_L / LOAD_R
+
+    # Rays that miss the root box are done before the loop starts.
+    if ~_box_hit(b, tree, node, o, inv_d, t_start, tmax):
+        state = b.UInt32(DONE)
+
+    while dr.hint((state != DONE) & (steps < tree.max_iterations), mode="symbolic", label="csg_traverse"):
+        steps += 1
+        # Register updates use dr.select rather than nested symbolic ifs: they are cheap, and
+        # Dr.Jit 1.5's LLVM backend mis-places a literal assigned in two sibling branches.
+
+        # ---- GoTo: one child of `node`, from t_start ----
+        going = state < CLASSIFY
+        go_right = (state & 1) == 1
+        child = dr.select(go_right, dr.gather(b.UInt32, tree.node_right, node, going),
+                          dr.gather(b.UInt32, tree.node_left, node, going))
+        child_flags = dr.gather(b.UInt32, tree.node_flags, child, going)
+        child_is_leaf = (child_flags & 3) == K_LEAF
+        in_box = going & _box_hit(b, tree, child, o, inv_d, t_start, tmax)
+        # Descend into an operation child: push what to do with its hit when it comes back.
+        descend = in_box & ~child_is_leaf
+        fresh_left = state == GOTO_L_FRESH
+        hit_t.write(dr.select(fresh_left, t_start, dr.select(go_right, t_l, t_r)), sp, descend)
+        hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, descend)
+        hit_info.write(dr.select(go_right, info_l, info_r), sp, descend)
+        frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R)), sp, descend)
+        sp = dr.select(descend, sp + 1, sp)
+        node = dr.select(descend, child, node)
+        # A leaf, or a subtree whose box the ray misses from here on: its hit is known now.
+        t_c = dr.full(b.Float, dr.inf, n)
+        info_c = dr.select((child_flags & 4) != 0, b.UInt32(EXIT), b.UInt32(MISS))   # co-bounded: inside forever
+        if in_box & child_is_leaf:
+            t_c, info_c = _leaf_hit(b, tree, child, o, d, t_start)
+        known = going & ~descend
+        set_r, set_l = known & go_right, known & ~go_right
+        t_r, leaf_r, info_r = dr.select(set_r, t_c, t_r), dr.select(set_r, child, leaf_r), dr.select(set_r, info_c, info_r)
+        t_l, leaf_l, info_l = dr.select(set_l, t_c, t_l), dr.select(set_l, child, leaf_l), dr.select(set_l, info_c, info_l)
+        state = dr.select(descend, GOTO_L_FRESH,
+                          dr.select(known, dr.select(fresh_left, GOTO_R_FRESH, CLASSIFY), state))
+
+        # ---- Classify: apply the state table of `node` ----
+        classify = state == CLASSIFY
+        kind = dr.gather(b.UInt32, tree.node_flags, node, classify) & 3
+        is_diff = kind == K_DIFFERENCE
+        cls_l = info_l & 3
+        cls_r = info_r & 3
+        # L - R = L & ~R: complement R's class (a miss of R is an exit at infinity)
+        cls_r = dr.select(is_diff, dr.select(cls_r == MISS, EXIT, cls_r ^ 1), cls_r)
+        table_op = dr.select(kind == K_UNION, 0, 1)
+        action = dr.gather(b.UInt32, tree.table, table_op * 9 + cls_l * 3 + cls_r, classify)
+        l_closer = t_l <= t_r
+        ret_l = (action == RET_L) | (((action == RET_CLOSER) | (action == RET_L_ELSE_LOOP_R)) & l_closer)
+        ret_r = (action == RET_R) | (((action == RET_CLOSER) | (action == RET_R_ELSE_LOOP_L)) & ~l_closer)
+        loop_l = ((action == RET_R_ELSE_LOOP_L) | (action == LOOP_CLOSER)) & l_closer
+        loop_r = ((action == RET_L_ELSE_LOOP_R) | (action == LOOP_CLOSER)) & ~l_closer
+        # Nothing lies beyond infinity: a loop from t = inf (inside both forever) returns.
+        ret_l = classify & (ret_l | (loop_l & (t_l == dr.inf)))
+        ret_r = classify & ~ret_l & (ret_r | (loop_r & (t_r == dr.inf)))
+        loop_l = classify & loop_l & (t_l != dr.inf)
+        loop_r = classify & ~loop_l & loop_r & (t_r != dr.inf)
+        ret_miss = classify & ~(ret_l | ret_r | loop_l | loop_r)
+        # A returned right hit of a difference changes class and flips its normal.
+        flip = dr.select(is_diff, FLIP_BIT, 0)
+        info_r_out = (info_r & ~b.UInt32(3 | FLIP_BIT)) | cls_r | ((info_r & FLIP_BIT) ^ flip)
+        # The returned hit goes into both registers (the parent's frame picks the slot).
+        res_t = dr.select(ret_r, t_r, dr.select(ret_l, t_l, dr.inf))
+        res_leaf = dr.select(ret_r, leaf_r, dr.select(ret_l, leaf_l, NO_LEAF))
+        res_info = dr.select(ret_r, info_r_out, dr.select(ret_l, info_l, MISS))
+        returning = ret_l | ret_r | ret_miss
+        t_start = dr.select(loop_l, t_l, dr.select(loop_r, t_r, t_start))
+        t_l, leaf_l, info_l = (dr.select(returning, res_t, t_l), dr.select(returning, res_leaf, leaf_l),
+                               dr.select(returning, res_info, info_l))
+        t_r, leaf_r, info_r = (dr.select(returning, res_t, t_r), dr.select(returning, res_leaf, leaf_r),
+                               dr.select(returning, res_info, info_r))
+        state = dr.select(returning, RETURN, dr.select(loop_l, GOTO_L_LOOP, dr.select(loop_r, GOTO_R_LOOP, state)))
+
+        # ---- Return: hand the hit (in both registers) to the parent's frame ----
+        at_root = (state == RETURN) & (sp == 0)
+        popping = (state == RETURN) & (sp > 0)
+        sp = dr.select(popping, sp - 1, sp)
+        node = dr.select(popping, dr.gather(b.UInt32, tree.node_parent, node, popping), node)
+        what = frame.read(sp, popping)
+        saved_t, saved_leaf, saved_info = hit_t.read(sp, popping), hit_leaf.read(sp, popping), hit_info.read(sp, popping)
+        load_l = popping & (what == LOAD_L)      # the hit is the right child's; reload the left
+        load_r = popping & (what == LOAD_R)      # the hit is the left child's; reload the right
+        save_l = popping & (what == SAVE_L)      # the hit is the left child's; now go right
+        t_start = dr.select(save_l, saved_t, t_start)
+        t_l, leaf_l, info_l = (dr.select(load_l, saved_t, t_l), dr.select(load_l, saved_leaf, leaf_l),
+                               dr.select(load_l, saved_info, info_l))
+        t_r, leaf_r, info_r = (dr.select(load_r, saved_t, t_r), dr.select(load_r, saved_leaf, leaf_r),
+                               dr.select(load_r, saved_info, info_r))
+        state = dr.select(at_root, DONE, dr.select(save_l, GOTO_R_FRESH, dr.select(popping, CLASSIFY, state)))
+
+    finished = state == DONE
+    hit = finished & ((info_l & 3) != MISS) & (t_l <= tmax)
+    t = dr.select(hit, t_l, dr.inf)
+    return t, dr.select(hit, leaf_l, NO_LEAF), info_l, finished, steps

@@ -1,0 +1,289 @@
+"""Lowering: a `Model` becomes flat numpy arrays of a binary tree (the kernel's input).
+
+Steps, all iterative (trees may be millions of nodes deep or wide):
+1. Transforms and materials are multiplied down to the primitives (`Node.walk_leaves`).
+2. Chains of one associative operation are flattened into n-ary nodes
+   (`(a | b) | c` -> union(a, b, c), `(a - b) - c` -> difference(a, b, c)).
+3. n-ary nodes become balanced binary subtrees in input order; a difference a - b - c
+   becomes a - (b | c). With `positive=True` differences become intersections with
+   complemented operands instead, and complements are pushed down to the leaves
+   (the positive form of paper §4.1).
+4. Bounds: exact world boxes for primitives; for operations, boxes of the general form.
+   A node of a positive-form tree is either bounded (inside its box) or co-bounded
+   (its complement is inside its box): `node_negative` says which.
+Node ids are preorder, so every parent has a smaller id than its children.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import primitives as P
+from .errors import ModelError
+from .model import DIFFERENCE, INTERSECTION, UNION, Node, Operation
+
+# Node kinds in the flat tree.
+K_UNION, K_INTERSECTION, K_DIFFERENCE, K_LEAF = 0, 1, 2, 3
+_KIND_CODE = {UNION: K_UNION, INTERSECTION: K_INTERSECTION, DIFFERENCE: K_DIFFERENCE}
+
+
+@dataclass
+class FlatTree:
+    """A binary CSG tree and its primitives as structure-of-arrays (float64, int64)."""
+    # per node (preorder ids, root = 0)
+    node_kind: np.ndarray       # K_UNION / K_INTERSECTION / K_DIFFERENCE / K_LEAF
+    node_negative: np.ndarray   # leaf: complemented; operation: co-bounded
+    node_left: np.ndarray       # operation: left child id; leaf: primitive index
+    node_right: np.ndarray      # operation: right child id; leaf: -1
+    node_parent: np.ndarray     # -1 for the root
+    node_lower: np.ndarray      # (N, 3) world box of the general form
+    node_upper: np.ndarray
+    node_height: np.ndarray     # operation levels below and including the node; leaves 0
+    # per primitive, in `Model.leaves()` order
+    prim_shape: np.ndarray      # primitives.SPHERE ... CONVEX
+    prim_to_canonical: np.ndarray  # (P, 3, 4) world -> canonical affine
+    prim_to_world: np.ndarray      # (P, 4, 4) canonical -> world
+    prim_param: np.ndarray      # (P, 2): cone radii (bottom, top) / max; torus minor/major
+    prim_plane_start: np.ndarray
+    prim_plane_count: np.ndarray
+    prim_lower: np.ndarray
+    prim_upper: np.ndarray
+    prim_material: list = field(default_factory=list)  # material name or None per primitive
+    planes: np.ndarray = None   # (Q, 4) canonical unit-normal planes of convex primitives
+    root: int = 0
+
+    @property
+    def height(self) -> int:
+        return int(self.node_height[self.root])
+
+    @property
+    def num_nodes(self) -> int:
+        return len(self.node_kind)
+
+    @property
+    def num_prims(self) -> int:
+        return len(self.prim_shape)
+
+
+# ---- Step 1-2: primitives and the n-ary item tree ----
+
+def _items(model: Node, prims: list):
+    """Return the n-ary item tree: ('leaf', prim) or (kind, [items]); fills `prims`."""
+    if not isinstance(model, Node):
+        raise ModelError(f"expected a CSG model node, got {type(model).__name__}")
+    leaf_iter = model.walk_leaves()
+    # Postorder over the model; the leaf walk yields primitives in the same DFS order.
+    root_box = []
+    stack = [(model, False, root_box)]
+    while stack:
+        node, expanded, out = stack.pop()
+        if not isinstance(node, Operation):
+            prim, matrix, material = next(leaf_iter)
+            prims.append((prim, matrix, material))
+            out.append(("leaf", len(prims) - 1))
+            continue
+        if not expanded:
+            kids: list = []
+            stack.append((node, kids, out))
+            stack.extend((c, False, kids) for c in reversed(node.children))
+            continue
+        kids = expanded
+        out.append(_flattened(node.kind, kids))
+    return root_box[0]
+
+
+def _flattened(kind: str, kids: list):
+    if len(kids) == 1 and kind != DIFFERENCE:
+        return kids[0]
+    if kind == DIFFERENCE:
+        first, rest = kids[0], []
+        if first[0] == DIFFERENCE:            # (a - b) - c = a - b - c
+            first, rest = first[1][0], list(first[1][1:])
+        for k in kids[1:]:                    # a - (b | c) = a - b - c
+            rest.extend(k[1] if k[0] == UNION else [k])
+        return (DIFFERENCE, [first, *rest]) if rest else first
+    merged = []
+    for k in kids:
+        merged.extend(k[1] if k[0] == kind else [k])
+    return (kind, merged)
+
+
+# ---- Step 3: binary emission in preorder ----
+
+_FLIP = {UNION: INTERSECTION, INTERSECTION: UNION}
+
+
+def _emit(root_item, positive: bool):
+    kind, negative, left, right, parent = [], [], [], [], []
+    # work: (spec, parent id, side); spec = ("item", item, neg) or ("range", op, [(item, neg)], lo, hi)
+    work = [(("item", root_item, False), -1, 0)]
+    while work:
+        spec, par, side = work.pop()
+        if spec[0] == "item":
+            _, item, neg = spec
+            if item[0] == "leaf":
+                nid = _new_node(kind, negative, left, right, parent, K_LEAF, neg, par, side)
+                left[nid] = item[1]
+                continue
+            op, kids = item
+            if op == DIFFERENCE:
+                a, rest = kids[0], kids[1:]
+                if positive or neg:
+                    # a - r = a & ~r ; ~(a - r) = ~a | r
+                    op = UNION if neg else INTERSECTION
+                    entries = [(a, neg)] + [(r, not neg) for r in rest]
+                    spec = ("range", op, entries, 0, len(entries))
+                else:
+                    nid = _new_node(kind, negative, left, right, parent, K_DIFFERENCE, False, par, side)
+                    right_spec = (("item", rest[0], False) if len(rest) == 1 else
+                                  ("range", UNION, [(r, False) for r in rest], 0, len(rest)))
+                    work.append((right_spec, nid, 1))
+                    work.append((("item", a, False), nid, 0))
+                    continue
+            else:
+                op = _FLIP[op] if neg else op
+                spec = ("range", op, [(k, neg) for k in kids], 0, len(kids))
+        _, op, entries, lo, hi = spec
+        if hi - lo == 1:
+            work.append((("item", *entries[lo]), par, side))
+            continue
+        mid = (lo + hi) // 2
+        nid = _new_node(kind, negative, left, right, parent, _KIND_CODE[op], False, par, side)
+        work.append((("range", op, entries, mid, hi), nid, 1))
+        work.append((("range", op, entries, lo, mid), nid, 0))
+    return (np.array(kind, np.int64), np.array(negative, bool), np.array(left, np.int64),
+            np.array(right, np.int64), np.array(parent, np.int64))
+
+
+def _new_node(kind, negative, left, right, parent, k, neg, par, side) -> int:
+    nid = len(kind)
+    kind.append(k)
+    negative.append(neg)
+    left.append(-1)
+    right.append(-1)
+    parent.append(par)
+    if par >= 0:
+        (left if side == 0 else right)[par] = nid
+    return nid
+
+
+# ---- Step 4: primitive arrays and bounds ----
+
+def _primitive_arrays(prims):
+    n = len(prims)
+    shape = np.empty(n, np.int64)
+    to_world = np.empty((n, 4, 4))
+    param = np.zeros((n, 2))
+    plane_start = np.zeros(n, np.int64)
+    plane_count = np.zeros(n, np.int64)
+    plane_sets: dict[int, tuple[int, np.ndarray]] = {}   # id(planes array) -> (start, vertices)
+    plane_chunks, n_planes = [], 0
+    materials = []
+    for i, (prim, matrix, material) in enumerate(prims):
+        canon, prm, planes = prim.canonical()
+        shape[i] = prim.shape
+        to_world[i] = matrix @ canon
+        param[i] = prm
+        materials.append(material)
+        if planes is not None:
+            key = id(planes)
+            if key not in plane_sets:
+                plane_sets[key] = (n_planes, prim.vertices)
+                plane_chunks.append(planes)
+                n_planes += len(planes)
+            plane_start[i] = plane_sets[key][0]
+            plane_count[i] = len(planes)
+    planes = np.vstack(plane_chunks) if plane_chunks else np.zeros((0, 4))
+    to_canonical = np.linalg.inv(to_world)[:, :3, :]
+    lower, upper = _primitive_bounds(shape, to_world, param, plane_start, plane_sets)
+    return shape, to_canonical, to_world, param, plane_start, plane_count, planes, lower, upper, materials
+
+
+def _primitive_bounds(shape, to_world, param, plane_start, plane_sets):
+    """Exact world boxes: support functions of the canonical shapes under each affine map."""
+    A, c = to_world[:, :3, :3], to_world[:, :3, 3]
+    half = np.zeros_like(c)
+    lower, upper = c.copy(), c.copy()
+    rows = np.linalg.norm(A, axis=2)                      # |A_i.| : support of the unit ball
+    disc = np.sqrt(A[:, :, 0] ** 2 + A[:, :, 1] ** 2)     # support of the unit disc in z = 0
+    m = shape == P.SPHERE
+    half[m] = rows[m]
+    m = shape == P.BOX
+    half[m] = np.abs(A[m]).sum(axis=2)
+    m = shape == P.TORUS
+    half[m] = disc[m] + param[m, 0:1] * rows[m]
+    hm = (shape == P.SPHERE) | (shape == P.BOX) | (shape == P.TORUS)
+    lower[hm], upper[hm] = c[hm] - half[hm], c[hm] + half[hm]
+    m = shape == P.CONE                                   # hull of the two cap discs
+    axis = A[m][:, :, 2]
+    bottom_c, top_c = c[m] - axis, c[m] + axis
+    bottom_h, top_h = param[m, 0:1] * disc[m], param[m, 1:2] * disc[m]
+    lower[m] = np.minimum(bottom_c - bottom_h, top_c - top_h)
+    upper[m] = np.maximum(bottom_c + bottom_h, top_c + top_h)
+    for start, verts in plane_sets.values():
+        m = (shape == P.CONVEX) & (plane_start == start)
+        world = np.einsum("nij,vj->nvi", A[m], verts) + c[m][:, None, :]
+        lower[m], upper[m] = world.min(axis=1), world.max(axis=1)
+    return lower, upper
+
+
+def _node_bounds(kind, negative, left, right, prim_lower, prim_upper):
+    """Boxes and heights bottom-up, one vectorized pass per tree depth."""
+    n = len(kind)
+    depth = np.zeros(n, np.int64)
+    frontier = np.array([0])
+    level = 0
+    while len(frontier):
+        depth[frontier] = level
+        f_ops = frontier[kind[frontier] != K_LEAF]
+        frontier = np.concatenate([left[f_ops], right[f_ops]])
+        level += 1
+    lower = np.empty((n, 3))
+    upper = np.empty((n, 3))
+    height = np.zeros(n, np.int64)
+    leaves = kind == K_LEAF
+    lower[leaves] = prim_lower[left[leaves]]
+    upper[leaves] = prim_upper[left[leaves]]
+    for d in range(depth.max(initial=0), -1, -1):
+        ids = np.flatnonzero((depth == d) & ~leaves)
+        if not len(ids):
+            continue
+        l, r, k = left[ids], right[ids], kind[ids]
+        height[ids] = 1 + np.maximum(height[l], height[r])
+        nl, nr = negative[l], negative[r]
+        ll, lu, rl, ru = lower[l], upper[l], lower[r], upper[r]
+        box_union = (np.minimum(ll, rl), np.maximum(lu, ru))
+        box_inter = (np.maximum(ll, rl), np.minimum(lu, ru))
+        # Treat a difference as an intersection with the complement of its right child.
+        is_diff = k == K_DIFFERENCE
+        nr_eff = nr ^ is_diff
+        is_union = k == K_UNION
+        # bounded-ness of the result: union: both bounded; intersection: either bounded
+        neg = np.where(is_union, nl | nr_eff, nl & nr_eff)
+        # box choice, see the module docstring rules
+        use_union = np.where(is_union, ~nl & ~nr_eff, nl & nr_eff)
+        use_inter = np.where(is_union, nl & nr_eff, ~nl & ~nr_eff)
+        # one side co-bounded: a union is co-bounded by that side's box, an intersection
+        # is bounded by the other (bounded) side's box
+        use_left = np.where(is_union, nl & ~nr_eff, ~nl & nr_eff)
+        for dst, u, i_, lb, rb in ((lower, box_union[0], box_inter[0], ll, rl),
+                                   (upper, box_union[1], box_inter[1], lu, ru)):
+            dst[ids] = np.where(use_union[:, None], u,
+                       np.where(use_inter[:, None], i_,
+                       np.where(use_left[:, None], lb, rb)))
+        negative[ids] = neg
+    return lower, upper, height, negative
+
+
+def lower(model: Node, positive: bool = False) -> FlatTree:
+    """Flatten `model` into a FlatTree; `positive=True` gives the positive form."""
+    prims: list = []
+    root_item = _items(model, prims)
+    kind, negative, left, right, parent = _emit(root_item, positive)
+    (shape, to_canonical, to_world, param, plane_start, plane_count, planes,
+     p_lower, p_upper, materials) = _primitive_arrays(prims)
+    lower_, upper_, height, negative = _node_bounds(kind, negative, left, right, p_lower, p_upper)
+    return FlatTree(kind, negative, left, right, parent, lower_, upper_, height,
+                    shape, to_canonical, to_world, param, plane_start, plane_count, p_lower, p_upper,
+                    materials, planes, 0)

@@ -1,0 +1,247 @@
+"""Analytic primitives and their canonical forms.
+
+Every primitive is described to the kernel as a *canonical* solid (unit sphere, cube
+[-1,1]^3, capped cone with |z| <= 1, torus of major radius 1, convex polyhedron) plus the
+matrix that maps the canonical solid to the primitive's local frame. Sizes thus live in
+matrices, and the kernel intersects five shapes only. All sizes are full lengths (as in
+GDML and OpenSCAD); `radius`, `apothem` and `major_radius` are radii.
+"""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from . import transform as tf
+from .errors import ModelError
+from .model import Primitive
+
+# Kernel shape codes (canonical shapes).
+SPHERE, BOX, CONE, TORUS, CONVEX = 0, 1, 2, 3, 4
+SHAPE_NAMES = {SPHERE: "sphere", BOX: "box", CONE: "cone", TORUS: "torus", CONVEX: "convex polyhedron"}
+
+
+def _positive(value, what: str) -> float:
+    v = tf.number(value, what)
+    if v <= 0:
+        raise ModelError(f"{what}: must be > 0, got {v:g}")
+    return v
+
+
+def _nonnegative(value, what: str) -> float:
+    v = tf.number(value, what)
+    if v < 0:
+        raise ModelError(f"{what}: must be >= 0, got {v:g}")
+    return v
+
+
+class Sphere(Primitive):
+    """Sphere of `radius` centred on the origin."""
+
+    __slots__ = ("radius",)
+    shape = SPHERE
+
+    def __init__(self, radius: float = 1.0, *, material: str | None = None):
+        super().__init__(material=material)
+        self.radius = _positive(radius, "Sphere.radius")
+
+    def canonical(self):
+        return np.diag([self.radius] * 3 + [1.0]), (0.0, 0.0), None
+
+    def __repr__(self):
+        return f"Sphere(radius={self.radius:g}){self._transform_repr()}"
+
+
+class Box(Primitive):
+    """Axis-aligned box of full edge lengths `size` (a number or (x, y, z)), centred on the origin."""
+
+    __slots__ = ("size",)
+    shape = BOX
+
+    def __init__(self, size=(1.0, 1.0, 1.0), *, material: str | None = None):
+        super().__init__(material=material)
+        s = np.asarray(size, dtype=np.float64)
+        if s.ndim == 0:
+            s = np.full(3, float(s))
+        if s.shape != (3,):
+            raise ModelError(f"Box.size: expected a number or 3 numbers, got shape {s.shape}")
+        self.size = tuple(_positive(v, f"Box.size[{i}]") for i, v in enumerate(s))
+
+    def canonical(self):
+        return np.diag([*(0.5 * np.array(self.size)), 1.0]), (0.0, 0.0), None
+
+    def __repr__(self):
+        return f"Box(size=({', '.join(f'{v:g}' for v in self.size)})){self._transform_repr()}"
+
+
+class Cone(Primitive):
+    """Truncated cone along z, centred on the origin, capped at z = -height/2 and +height/2.
+
+    `radius_bottom` is the radius at -height/2, `radius_top` at +height/2; one of them may be 0.
+    """
+
+    __slots__ = ("radius_bottom", "radius_top", "height")
+    shape = CONE
+
+    def __init__(self, radius_bottom: float = 1.0, radius_top: float = 0.0, height: float = 1.0, *,
+                 material: str | None = None):
+        super().__init__(material=material)
+        name = type(self).__name__
+        self.radius_bottom = _nonnegative(radius_bottom, f"{name}.radius_bottom")
+        self.radius_top = _nonnegative(radius_top, f"{name}.radius_top")
+        if self.radius_bottom == 0 and self.radius_top == 0:
+            raise ModelError(f"{name}: radius_bottom and radius_top are both 0 (no volume)")
+        self.height = _positive(height, f"{name}.height")
+
+    def canonical(self):
+        r = max(self.radius_bottom, self.radius_top)
+        return (np.diag([r, r, 0.5 * self.height, 1.0]),
+                (self.radius_bottom / r, self.radius_top / r), None)
+
+    def __repr__(self):
+        return (f"Cone(radius_bottom={self.radius_bottom:g}, radius_top={self.radius_top:g}, "
+                f"height={self.height:g}){self._transform_repr()}")
+
+
+class Cylinder(Cone):
+    """Capped cylinder of `radius` along z with full `height`, centred on the origin."""
+
+    __slots__ = ()
+
+    def __init__(self, radius: float = 1.0, height: float = 1.0, *, material: str | None = None):
+        radius = _positive(radius, "Cylinder.radius")
+        super().__init__(radius, radius, height, material=material)
+
+    @property
+    def radius(self) -> float:
+        return self.radius_bottom
+
+    def __repr__(self):
+        return f"Cylinder(radius={self.radius:g}, height={self.height:g}){self._transform_repr()}"
+
+
+class Torus(Primitive):
+    """Ring torus around the z axis: tube of `minor_radius` swept along a circle of `major_radius`."""
+
+    __slots__ = ("major_radius", "minor_radius")
+    shape = TORUS
+
+    def __init__(self, major_radius: float = 1.0, minor_radius: float = 0.25, *, material: str | None = None):
+        super().__init__(material=material)
+        self.major_radius = _positive(major_radius, "Torus.major_radius")
+        self.minor_radius = _positive(minor_radius, "Torus.minor_radius")
+        if self.minor_radius >= self.major_radius:
+            raise ModelError(f"Torus: minor_radius ({self.minor_radius:g}) must be < major_radius "
+                             f"({self.major_radius:g}); horn and spindle tori are not supported")
+
+    def canonical(self):
+        R = self.major_radius
+        return np.diag([R, R, R, 1.0]), (self.minor_radius / R, 0.0), None
+
+    def __repr__(self):
+        return (f"Torus(major_radius={self.major_radius:g}, minor_radius={self.minor_radius:g})"
+                f"{self._transform_repr()}")
+
+
+class ConvexPolyhedron(Primitive):
+    """Bounded convex solid {x : n_i . x <= d_i}, given as rows (nx, ny, nz, d) of `planes`.
+
+    Normals point outwards and need not be unit length. The half-spaces must bound a solid
+    with volume; redundant planes are allowed.
+    """
+
+    __slots__ = ("planes", "vertices")
+    shape = CONVEX
+    MAX_PLANES = 256
+
+    def __init__(self, planes, *, material: str | None = None):
+        super().__init__(material=material)
+        self.planes, self.vertices = _checked_polyhedron(planes, type(self).__name__)
+
+    def canonical(self):
+        return tf.IDENTITY, (0.0, 0.0), self.planes
+
+    def __repr__(self):
+        return f"ConvexPolyhedron(<{len(self.planes)} planes>){self._transform_repr()}"
+
+
+class Prism(ConvexPolyhedron):
+    """Right prism along z over a regular polygon with `sides` sides and inner radius `apothem`.
+
+    Full `height`, centred on the origin; one vertex-free edge faces +x (a side's normal is +x).
+    `Prism(6, a, h)` is the hexagonal prism of the paper and GDML polyhedra.
+    """
+
+    __slots__ = ("sides", "apothem", "height")
+    _unit_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def __init__(self, sides: int = 6, apothem: float = 1.0, height: float = 1.0, *, material: str | None = None):
+        Primitive.__init__(self, material=material)
+        if not isinstance(sides, (int, np.integer)) or isinstance(sides, bool) or not 3 <= sides <= 1000:
+            raise ModelError(f"Prism.sides: expected an integer in 3..1000, got {sides!r}")
+        self.sides = int(sides)
+        self.apothem = _positive(apothem, "Prism.apothem")
+        self.height = _positive(height, "Prism.height")
+        # All prisms with the same number of sides share one set of canonical planes.
+        if self.sides not in self._unit_cache:
+            angles = 2.0 * np.pi * np.arange(self.sides) / self.sides
+            sides_planes = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles), np.ones_like(angles)], 1)
+            caps = np.array([[0.0, 0.0, 1.0, 1.0], [0.0, 0.0, -1.0, 1.0]])
+            self._unit_cache[self.sides] = _checked_polyhedron(np.vstack([sides_planes, caps]), "Prism")
+        self.planes, self.vertices = self._unit_cache[self.sides]
+
+    def canonical(self):
+        a = self.apothem
+        return np.diag([a, a, 0.5 * self.height, 1.0]), (0.0, 0.0), self.planes
+
+    def __repr__(self):
+        return (f"Prism(sides={self.sides}, apothem={self.apothem:g}, height={self.height:g})"
+                f"{self._transform_repr()}")
+
+
+def _checked_polyhedron(planes, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Unit-normal planes and the vertices of a bounded convex polyhedron with volume, or ModelError."""
+    p = np.asarray(planes, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 4:
+        raise ModelError(f"{name}.planes: expected rows (nx, ny, nz, d), got shape {p.shape}")
+    if not 4 <= len(p) <= ConvexPolyhedron.MAX_PLANES:
+        raise ModelError(f"{name}.planes: a closed convex solid needs 4..{ConvexPolyhedron.MAX_PLANES} planes, "
+                         f"got {len(p)}")
+    if not np.all(np.isfinite(p)):
+        raise ModelError(f"{name}.planes: NaN or infinite entries")
+    norms = np.linalg.norm(p[:, :3], axis=1)
+    if np.any(norms == 0):
+        raise ModelError(f"{name}.planes: plane {int(np.argmin(norms))} has a zero normal")
+    p = p / norms[:, None]
+    n, d = p[:, :3], p[:, 3]
+    scale = max(1.0, float(np.max(np.abs(d))))
+
+    # Bounded iff no direction y != 0 has n_i . y <= 0 for all i. Such a cone, if any, has an
+    # extreme ray along some n_i x n_j, or all normals are coplanar (rank < 3).
+    if np.linalg.matrix_rank(n, tol=1e-9) < 3:
+        raise ModelError(f"{name}: the planes do not enclose a bounded solid (normals are coplanar)")
+    i, j = np.triu_indices(len(n), 1)
+    dirs = np.cross(n[i], n[j])
+    dirs = dirs[np.linalg.norm(dirs, axis=1) > 1e-9]
+    dirs = np.vstack([dirs, -dirs])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    if np.any(np.all(dirs @ n.T <= 1e-12, axis=1)):
+        raise ModelError(f"{name}: the planes do not enclose a bounded solid (it extends to infinity)")
+
+    # Vertices: feasible intersections of plane triples.
+    triples = np.fromiter(itertools.chain.from_iterable(itertools.combinations(range(len(n)), 3)),
+                          dtype=np.int64).reshape(-1, 3)
+    mats = n[triples]
+    dets = np.linalg.det(mats)
+    ok = np.abs(dets) > 1e-10
+    pts = np.linalg.solve(mats[ok], d[triples[ok]][..., None])[..., 0]
+    pts = pts[np.all(pts @ n.T <= d + 1e-7 * scale, axis=1)]
+    if len(pts) < 4:
+        raise ModelError(f"{name}: the planes enclose no solid (empty or flat intersection)")
+    centred = pts - pts.mean(axis=0)
+    if np.linalg.matrix_rank(centred, tol=1e-9 * scale) < 3:
+        raise ModelError(f"{name}: the planes enclose a flat or empty set, not a solid")
+    verts = np.unique(np.round(pts, 12), axis=0)
+    p.setflags(write=False)
+    verts.setflags(write=False)
+    return p, verts

@@ -1,0 +1,175 @@
+"""Tracing entry points: the Dr.Jit one (device arrays in and out) and the numpy helpers.
+
+`Scene`-free and Mitsuba-free: the integrators call `trace_rays` with the ray arrays of
+their own variant; `trace` and `contains` convert numpy arrays at the edges only.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import drjit as dr
+import numpy as np
+
+from . import intersect as X
+from .errors import CSGError
+from .kernel import FLIP_BIT, NO_LEAF, KernelTree, backend_of, traverse, upload
+from .lowering import FlatTree, lower
+from .model import Node
+
+
+class IterationLimitWarning(RuntimeWarning):
+    """Some rays reached the kernel's iteration bound; their results are reported as NaN."""
+
+
+@dataclass
+class Prepared:
+    """A model lowered and uploaded once, ready to trace many ray batches."""
+    flat: FlatTree
+    tree: KernelTree
+
+
+def prepare(model, backend=None, *, positive: bool = False, max_iterations: int | None = None) -> Prepared:
+    """Lower `model` and upload it for `backend` (default: the current Mitsuba variant's)."""
+    if isinstance(model, Prepared):
+        return model
+    if backend is None:
+        backend = default_backend()
+    flat = model if isinstance(model, FlatTree) else lower(model, positive=positive)
+    return Prepared(flat, upload(flat, backend, max_iterations))
+
+
+def default_backend():
+    import mitsuba as mi
+    return backend_of(mi.Float)
+
+
+@dataclass
+class RayHits:
+    """Per-ray results on the device (detached Dr.Jit arrays)."""
+    t: object          # Float: inf on a miss, NaN where the iteration bound was hit
+    normal: object     # Array3f: outward unit normal of the CSG solid
+    prim: object       # UInt32: index into Model.leaves(); 0xFFFFFFFF on a miss
+    entering: object   # Bool: the ray enters the solid at the hit
+    finished: object   # Bool: False where the iteration bound stopped the lane
+    steps: object      # UInt32: automaton iterations per lane
+
+
+def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf")) -> RayHits:
+    """First hit of each ray o + t d, t in (tmin, tmax], on the CSG solid (Dr.Jit arrays)."""
+    tree = prepared.tree
+    b = tree.b
+    o, d = b.Array3f(dr.detach(o)), b.Array3f(dr.detach(d))
+    n = dr.width(o)
+    tmin = dr.full(b.Float, tmin, n) if isinstance(tmin, (int, float)) else b.Float(dr.detach(tmin))
+    tmax = dr.full(b.Float, tmax, n) if isinstance(tmax, (int, float)) else b.Float(dr.detach(tmax))
+    t, leaf, info, finished, steps = traverse(tree, o, d, tmin, tmax)
+    hit = leaf != NO_LEAF
+    prim = dr.gather(b.UInt32, tree.node_left, leaf, hit)
+    normal = hit_normal(tree, prim, info, o, d, dr.select(hit, t, 0.0), hit)
+    t = dr.select(finished, t, dr.nan)
+    return RayHits(t=t, normal=normal, prim=dr.select(hit, prim, NO_LEAF),
+                   entering=hit & ((info & 3) == X.ENTER), finished=finished, steps=steps)
+
+
+def hit_normal(tree: KernelTree, prim, info, o, d, t, active):
+    """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`."""
+    b = tree.b
+    rows = [dr.gather(b.Array4f, tree.prim_xf, prim * 3 + r, active) for r in range(3)]
+    p = o + t * d
+    p4 = b.Array4f(p.x, p.y, p.z, 1.0)
+    p_canonical = b.Array3f(dr.dot(rows[0], p4), dr.dot(rows[1], p4), dr.dot(rows[2], p4))
+    shape = dr.gather(b.UInt32, tree.prim_shape, prim, active)
+    param = dr.gather(b.module.Array2f, tree.prim_param, prim, active)
+    planes = dr.gather(b.module.Array2u, tree.prim_planes, prim, active)
+    n_local = X.local_normal(b, shape, param, tree.planes, planes[0], p_canonical, info >> 3)
+    # normals transform with the inverse transpose of canonical -> world, i.e. M^T
+    n = (rows[0].x * n_local.x + rows[1].x * n_local.y + rows[2].x * n_local.z,
+         rows[0].y * n_local.x + rows[1].y * n_local.y + rows[2].y * n_local.z,
+         rows[0].z * n_local.x + rows[1].z * n_local.y + rows[2].z * n_local.z)
+    n = dr.normalize(b.Array3f(*n))
+    n = dr.select((info & FLIP_BIT) != 0, -n, n)
+    return dr.select(active, n, 0.0)
+
+
+# ---- numpy helpers ----
+
+@dataclass
+class Hits:
+    """First hits as numpy arrays (see `trace`)."""
+    t: np.ndarray          # (N,) float32; inf on a miss
+    normal: np.ndarray     # (N, 3) outward unit normal of the CSG solid; 0 on a miss
+    prim: np.ndarray       # (N,) int64 index into model.leaves(); -1 on a miss
+    entering: np.ndarray   # (N,) bool
+    unfinished: int        # rays stopped by the iteration bound (their t is NaN)
+    steps: np.ndarray      # (N,) automaton iterations
+
+
+def _rays(a, what: str) -> np.ndarray:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim == 1 and arr.shape == (3,):
+        arr = arr[None]
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise CSGError(f"{what}: expected an (N, 3) array, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise CSGError(f"{what}: contains NaN or infinite values (first at row "
+                       f"{int(np.flatnonzero(~np.isfinite(arr).all(1))[0])})")
+    return arr
+
+
+def _to_array3(b, a: np.ndarray):
+    a32 = np.ascontiguousarray(a.T, dtype=np.float32)
+    return b.Array3f(b.Float(a32[0]), b.Float(a32[1]), b.Float(a32[2]))
+
+
+def trace(model, origins, directions, tmin: float = 0.0, tmax: float = np.inf, *,
+          max_iterations: int | None = None) -> Hits:
+    """First hit of each ray on the CSG solid; numpy (N, 3) arrays in, `Hits` out.
+
+    `model` is a Node or the result of `prepare`. Rays are o + t d with t in (tmin, tmax];
+    d need not be unit length and t is in units of d.
+    """
+    o, d = _rays(origins, "origins"), _rays(directions, "directions")
+    if len(o) != len(d):
+        raise CSGError(f"origins and directions differ in length ({len(o)} vs {len(d)})")
+    if np.any(np.all(d == 0, axis=1)):
+        raise CSGError(f"directions: row {int(np.flatnonzero(np.all(d == 0, axis=1))[0])} is the zero vector")
+    if np.isnan(tmin) or np.isnan(tmax) or tmin > tmax:
+        raise CSGError(f"need tmin <= tmax, got tmin={tmin}, tmax={tmax}")
+    prepared = model if isinstance(model, Prepared) else prepare(model, max_iterations=max_iterations)
+    b = prepared.tree.b
+    if len(o) == 0:
+        return Hits(np.zeros(0, np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int64),
+                    np.zeros(0, bool), 0, np.zeros(0, np.uint32))
+    hits = trace_rays(prepared, _to_array3(b, o), _to_array3(b, d), float(tmin), float(tmax))
+    dr.eval(hits.t, hits.normal, hits.prim, hits.entering, hits.finished, hits.steps)
+    prim = hits.prim.numpy().astype(np.int64)
+    prim[prim == NO_LEAF] = -1
+    unfinished = int(np.count_nonzero(~hits.finished.numpy()))
+    if unfinished:
+        warnings.warn(f"{unfinished} of {len(o)} rays reached the iteration bound "
+                      f"({prepared.tree.max_iterations}); their t is NaN", IterationLimitWarning, stacklevel=2)
+    return Hits(hits.t.numpy(), hits.normal.numpy().T.copy(), prim, hits.entering.numpy(),
+                unfinished, hits.steps.numpy())
+
+
+# A direction with no special relation to axes or common angles, so that membership rays
+# rarely graze edges of axis-aligned or symmetric models.
+_PROBE = np.array([0.5773502691896257, 0.5773502691896257, 0.5773502691896257]) + \
+    np.array([0.0912, -0.0513, 0.0231])
+_PROBE /= np.linalg.norm(_PROBE)
+
+
+def contains(model, points) -> np.ndarray:
+    """(N,) bool: which points lie inside the solid.
+
+    A ray from each point finds the first boundary after it: an exit means the point is
+    inside. Points on the boundary itself may go either way.
+    """
+    p = _rays(points, "points")
+    hits = trace(model, p, np.broadcast_to(_PROBE, p.shape), 0.0, np.inf)
+    return (hits.prim >= 0) & ~hits.entering
+
+
+def is_node(x) -> bool:
+    return isinstance(x, Node)
