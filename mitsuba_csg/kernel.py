@@ -67,15 +67,12 @@ def backend_of(array) -> Backend:
 class KernelTree:
     """A FlatTree on the device: structure-of-arrays with explicit strides."""
     b: Backend
-    node_flags: object      # UInt32: kind | negative << 2
-    node_left: object       # UInt32: left child; leaf: primitive index
-    node_right: object
-    node_parent: object
-    node_box: object        # Float, 6 per node: lower xyz, upper xyz (padded outwards)
-    prim_shape: object      # UInt32
-    prim_xf: object         # Float, 12 per primitive: world -> canonical rows
-    prim_param: object      # Float, 2 per primitive
-    prim_planes: object     # UInt32, 2 per primitive: start, count
+    # Records have power-of-two sizes so that Dr.Jit turns each gather into packet loads.
+    node_record: object     # UInt32, 4 per node: flags (kind | negative << 2), left child or
+                            #   primitive index, right child, parent
+    node_box: object        # Float, 8 per node: lower xyz, 0, upper xyz, 0 (padded outwards)
+    prim_record: object     # Float, 16 per primitive: world -> canonical rows (12), two shape
+                            #   parameters, plane start and (count | shape << 16) as bits
     planes: object          # Float, 4 per plane
     table: object           # UInt32 state table, 18 entries
     root: int
@@ -115,9 +112,15 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None) 
     with np.errstate(invalid="ignore", over="ignore"):
         pad = 1e-5 * (upper - lower) + 1e-6 * np.maximum(np.abs(lower), np.abs(upper)) + 1e-30
     pad = np.where(np.isfinite(pad) & (upper >= lower), pad, 0.0)
-    box = np.hstack([lower - pad, upper + pad]).astype(np.float32)
+    zeros = np.zeros((len(lower), 1))
+    box = np.hstack([lower - pad, zeros, upper + pad, zeros]).astype(np.float32)
     flags = kind.astype(np.uint32) | (neg.astype(np.uint32) << 2)
-    u32 = lambda a: b.UInt32(np.asarray(a, dtype=np.int64).astype(np.uint32))  # noqa: E731
+    node_record = np.stack([flags, left, np.where(right < 0, 0, right), np.where(parent < 0, 0, parent)], 1)
+    prim_record = np.zeros((flat.num_prims, 16), np.float32)
+    prim_record[:, :12] = flat.prim_to_canonical.reshape(-1, 12)
+    prim_record[:, 12:14] = flat.prim_param
+    ints = np.stack([flat.prim_plane_start, flat.prim_plane_count | (flat.prim_shape << 16)], 1)
+    prim_record[:, 14:16] = ints.astype(np.uint32).view(np.float32)
     planes = flat.planes if len(flat.planes) else np.zeros((1, 4))
     n_nodes = len(kind)
     if max_iterations is None:
@@ -125,34 +128,42 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None) 
         # once per ancestor. This bound is far above any real ray and only stops runaways.
         max_iterations = int(min(2**31 - 1, 64 + 8 * n_nodes * (height + 2)))
     return KernelTree(
-        b=b, node_flags=u32(flags), node_left=u32(left), node_right=u32(right), node_parent=u32(parent),
-        node_box=b.Float(box.ravel()), prim_shape=u32(flat.prim_shape),
-        prim_xf=b.Float(flat.prim_to_canonical.astype(np.float32).ravel()),
-        prim_param=b.Float(flat.prim_param.astype(np.float32).ravel()),
-        prim_planes=u32(np.stack([flat.prim_plane_start, flat.prim_plane_count], 1).ravel()),
+        b=b, node_record=b.UInt32(node_record.astype(np.uint32).ravel()), node_box=b.Float(box.ravel()),
+        prim_record=b.Float(prim_record.ravel()),
         planes=b.Float(planes.astype(np.float32).ravel()), table=b.UInt32(_TABLE_ARRAY),
         root=int(root), root_is_leaf=root_is_leaf, stack_size=max(1, height), num_nodes=n_nodes,
         num_prims=flat.num_prims, max_iterations=max_iterations)
 
 
-def _box_hit(b, tree, node, o, inv_d, t_start, tmax):
-    lo = dr.gather(b.Array3f, tree.node_box, node * 2)
-    hi = dr.gather(b.Array3f, tree.node_box, node * 2 + 1)
+def gather_prim(b, tree, prim, active=True):
+    """(rows of world -> canonical, shape, params, plane start, plane count) of primitives."""
+    rec = dr.gather(b.module.ArrayXf, tree.prim_record, prim, active, shape=(16, dr.width(prim)))
+    rows = [b.Array4f(rec[4 * r], rec[4 * r + 1], rec[4 * r + 2], rec[4 * r + 3]) for r in range(3)]
+    start = dr.reinterpret_array(b.UInt32, rec[14])
+    count_shape = dr.reinterpret_array(b.UInt32, rec[15])
+    return rows, count_shape >> 16, (rec[12], rec[13]), start, count_shape & 0xFFFF
+
+
+def node_record(b, tree, node, active=True):
+    """(flags, left or primitive, right, parent) of nodes."""
+    rec = dr.gather(b.module.Array4u, tree.node_record, node, active)
+    return rec[0], rec[1], rec[2], rec[3]
+
+
+def _box_hit(b, tree, node, o, inv_d, t_start, tmax, active):
+    lo4 = dr.gather(b.Array4f, tree.node_box, node * 2, active)
+    hi4 = dr.gather(b.Array4f, tree.node_box, node * 2 + 1, active)
+    lo, hi = b.Array3f(lo4.x, lo4.y, lo4.z), b.Array3f(hi4.x, hi4.y, hi4.z)
     t1, t2 = (lo - o) * inv_d, (hi - o) * inv_d
     near = dr.max(dr.minimum(t1, t2))
     far = dr.min(dr.maximum(t1, t2))
     return (near <= far) & (far >= t_start) & (near <= tmax)
 
 
-def _leaf_hit(b, tree, leaf, o, d, t_start):
+def _leaf_hit(b, tree, flags, prim, o, d, t_start):
     """(t, info) of a leaf node's first event after t_start, complement applied."""
-    flags = dr.gather(b.UInt32, tree.node_flags, leaf)
-    prim = dr.gather(b.UInt32, tree.node_left, leaf)
-    shape = dr.gather(b.UInt32, tree.prim_shape, prim)
-    rows = [dr.gather(b.Array4f, tree.prim_xf, prim * 3 + r) for r in range(3)]
-    param = dr.gather(b.module.Array2f, tree.prim_param, prim)
-    planes = dr.gather(b.module.Array2u, tree.prim_planes, prim)
-    t, face, cls = X.first_event(b, shape, rows, param, tree.planes, planes[0], planes[1], o, d, t_start)
+    rows, shape, param, plane_start, plane_count = gather_prim(b, tree, prim)
+    t, face, cls = X.first_event(b, shape, rows, param, tree.planes, plane_start, plane_count, o, d, t_start)
     complemented = (flags & 4) != 0
     # A complemented leaf swaps enter/exit; missing it means being inside it forever.
     cls = dr.select(complemented, dr.select(cls == MISS, EXIT, cls ^ 1), cls)
@@ -181,22 +192,23 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     frame = dr.alloc_local(b.UInt32, tree.stack_size)      # state stack: SAVE_L / LOAD_L / LOAD_R
 
     # Rays that miss the root box are done before the loop starts.
-    if ~_box_hit(b, tree, node, o, inv_d, t_start, tmax):
-        state = b.UInt32(DONE)
+    state = dr.select(_box_hit(b, tree, node, o, inv_d, t_start, tmax, True), state, DONE)
 
     while dr.hint((state != DONE) & (steps < tree.max_iterations), mode="symbolic", label="csg_traverse"):
         steps += 1
         # Register updates use dr.select rather than nested symbolic ifs: they are cheap, and
         # Dr.Jit 1.5's LLVM backend mis-places a literal assigned in two sibling branches.
 
+        # The current node's record serves GoTo (children), Classify (kind), Return (parent).
+        flags, node_left, node_right, node_parent = node_record(b, tree, node)
+
         # ---- GoTo: one child of `node`, from t_start ----
         going = state < CLASSIFY
         go_right = (state & 1) == 1
-        child = dr.select(go_right, dr.gather(b.UInt32, tree.node_right, node, going),
-                          dr.gather(b.UInt32, tree.node_left, node, going))
-        child_flags = dr.gather(b.UInt32, tree.node_flags, child, going)
+        child = dr.select(go_right, node_right, node_left)
+        child_flags, child_prim, _, _ = node_record(b, tree, child, going)
         child_is_leaf = (child_flags & 3) == K_LEAF
-        in_box = going & _box_hit(b, tree, child, o, inv_d, t_start, tmax)
+        in_box = going & _box_hit(b, tree, child, o, inv_d, t_start, tmax, going)
         # Descend into an operation child: push what to do with its hit when it comes back.
         descend = in_box & ~child_is_leaf
         fresh_left = state == GOTO_L_FRESH
@@ -210,7 +222,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         t_c = dr.full(b.Float, dr.inf, n)
         info_c = dr.select((child_flags & 4) != 0, b.UInt32(EXIT), b.UInt32(MISS))   # co-bounded: inside forever
         if in_box & child_is_leaf:
-            t_c, info_c = _leaf_hit(b, tree, child, o, d, t_start)
+            t_c, info_c = _leaf_hit(b, tree, child_flags, child_prim, o, d, t_start)
         known = going & ~descend
         set_r, set_l = known & go_right, known & ~go_right
         t_r, leaf_r, info_r = dr.select(set_r, t_c, t_r), dr.select(set_r, child, leaf_r), dr.select(set_r, info_c, info_r)
@@ -220,7 +232,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
 
         # ---- Classify: apply the state table of `node` ----
         classify = state == CLASSIFY
-        kind = dr.gather(b.UInt32, tree.node_flags, node, classify) & 3
+        kind = flags & 3
         is_diff = kind == K_DIFFERENCE
         cls_l = info_l & 3
         cls_r = info_r & 3
@@ -258,7 +270,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         at_root = (state == RETURN) & (sp == 0)
         popping = (state == RETURN) & (sp > 0)
         sp = dr.select(popping, sp - 1, sp)
-        node = dr.select(popping, dr.gather(b.UInt32, tree.node_parent, node, popping), node)
+        node = dr.select(popping, node_parent, node)
         what = frame.read(sp, popping)
         saved_t, saved_leaf, saved_info = hit_t.read(sp, popping), hit_leaf.read(sp, popping), hit_info.read(sp, popping)
         load_l = popping & (what == LOAD_L)      # the hit is the right child's; reload the left

@@ -13,7 +13,7 @@ import numpy as np
 
 from . import intersect as X
 from .errors import CSGError
-from .kernel import FLIP_BIT, NO_LEAF, KernelTree, backend_of, traverse, upload
+from .kernel import FLIP_BIT, NO_LEAF, KernelTree, backend_of, gather_prim, node_record, traverse, upload
 from .lowering import FlatTree, lower
 from .model import Node
 
@@ -65,7 +65,7 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf")) -> RayHits
     tmax = dr.full(b.Float, tmax, n) if isinstance(tmax, (int, float)) else b.Float(dr.detach(tmax))
     t, leaf, info, finished, steps = traverse(tree, o, d, tmin, tmax)
     hit = leaf != NO_LEAF
-    prim = dr.gather(b.UInt32, tree.node_left, leaf, hit)
+    _, prim, _, _ = node_record(b, tree, leaf, hit)
     normal = hit_normal(tree, prim, info, o, d, dr.select(hit, t, 0.0), hit)
     t = dr.select(finished, t, dr.nan)
     return RayHits(t=t, normal=normal, prim=dr.select(hit, prim, NO_LEAF),
@@ -75,14 +75,11 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf")) -> RayHits
 def hit_normal(tree: KernelTree, prim, info, o, d, t, active):
     """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`."""
     b = tree.b
-    rows = [dr.gather(b.Array4f, tree.prim_xf, prim * 3 + r, active) for r in range(3)]
+    rows, shape, param, plane_start, _ = gather_prim(b, tree, prim, active)
     p = o + t * d
     p4 = b.Array4f(p.x, p.y, p.z, 1.0)
     p_canonical = b.Array3f(dr.dot(rows[0], p4), dr.dot(rows[1], p4), dr.dot(rows[2], p4))
-    shape = dr.gather(b.UInt32, tree.prim_shape, prim, active)
-    param = dr.gather(b.module.Array2f, tree.prim_param, prim, active)
-    planes = dr.gather(b.module.Array2u, tree.prim_planes, prim, active)
-    n_local = X.local_normal(b, shape, param, tree.planes, planes[0], p_canonical, info >> 3)
+    n_local = X.local_normal(b, shape, param, tree.planes, plane_start, p_canonical, info >> 3)
     # normals transform with the inverse transpose of canonical -> world, i.e. M^T
     n = (rows[0].x * n_local.x + rows[1].x * n_local.y + rows[2].x * n_local.z,
          rows[0].y * n_local.x + rows[1].y * n_local.y + rows[2].y * n_local.z,
