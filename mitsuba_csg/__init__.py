@@ -12,6 +12,7 @@ ensure_variant()
 from .errors import CSGError, ModelError, TreeTooDeepError  # noqa: E402
 from .model import Node, Operation, Primitive, difference, intersection, union  # noqa: E402
 from .primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus  # noqa: E402
+from .optimize import OptimizedModel, optimize  # noqa: E402
 from .tracing import Hits, IterationLimitWarning, Prepared, contains, prepare, trace, trace_rays  # noqa: E402
 
 
@@ -23,6 +24,6 @@ def to_mesh(model, segments: int = 64):
 
 __all__ = [
     "Box", "CSGError", "Cone", "ConvexPolyhedron", "Cylinder", "Hits", "IterationLimitWarning", "ModelError",
-    "Node", "Operation", "Prepared", "Primitive", "Prism", "Sphere", "Torus", "TreeTooDeepError",
-    "contains", "difference", "intersection", "prepare", "to_mesh", "trace", "trace_rays", "union",
+    "Node", "Operation", "OptimizedModel", "Prepared", "Primitive", "Prism", "Sphere", "Torus", "TreeTooDeepError",
+    "contains", "difference", "intersection", "optimize", "prepare", "to_mesh", "trace", "trace_rays", "union",
 ]

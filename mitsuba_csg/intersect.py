@@ -20,7 +20,7 @@ ENTER, EXIT, MISS = 0, 1, 2
 # Acceptance slack for cone side/cap candidates near the rim (canonical units).
 _RIM_SLACK = 1e-5
 # Newton-bisection steps per bracketed root of the torus quartic (and its derivative).
-_TORUS_STEPS = 14
+_TORUS_STEPS = 16
 
 
 class Backend:
@@ -146,18 +146,26 @@ def _poly(coeffs, x):
 
 
 def _bracketed_root(f, df, lo, hi, valid):
-    """Root of a monotone polynomial on [lo, hi] if its ends differ in sign, else (x, False)."""
+    """Root of a monotone polynomial on [lo, hi] if its ends differ in sign, else (x, False).
+
+    Newton steps inside the bracket, bisection otherwise. Once a Newton step no longer moves
+    x, x is frozen: at the float32 noise floor the sign of f is noise, and following it
+    would walk the bracket away from the root.
+    """
     f_lo, f_hi = _poly(f, lo), _poly(f, hi)
     has_root = valid & (lo < hi) & ((f_lo <= 0) != (f_hi <= 0))
     lo_neg = f_lo <= 0
     x = 0.5 * (lo + hi)
+    done = ~has_root
     for _ in range(_TORUS_STEPS):
         fx = _poly(f, x)
         same_as_lo = (fx <= 0) == lo_neg
         lo = dr.select(same_as_lo, x, lo)
         hi = dr.select(same_as_lo, hi, x)
         step = x - fx / _poly(df, x)
-        x = dr.select((step > lo) & (step < hi), step, 0.5 * (lo + hi))
+        x_next = dr.select((step > lo) & (step < hi), step, 0.5 * (lo + hi))
+        done |= (fx == 0) | (dr.abs(x_next - x) <= 2e-7 * (dr.abs(x) + 1e-3))
+        x = dr.select(done, x, x_next)
     return x, has_root
 
 

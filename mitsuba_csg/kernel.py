@@ -240,11 +240,15 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         cls_r = dr.select(is_diff, dr.select(cls_r == MISS, EXIT, cls_r ^ 1), cls_r)
         table_op = dr.select(kind == K_UNION, 0, 1)
         action = dr.gather(b.UInt32, tree.table, table_op * 9 + cls_l * 3 + cls_r, classify)
+        # Ties: a return needs its hit strictly closer, except RET_CLOSER. Where an enter of one
+        # child meets an exit of the other at the same t (touching or coincident faces), the
+        # solid does not change there, so the tie loops instead of reporting a false boundary.
         l_closer = t_l <= t_r
-        ret_l = (action == RET_L) | (((action == RET_CLOSER) | (action == RET_L_ELSE_LOOP_R)) & l_closer)
-        ret_r = (action == RET_R) | (((action == RET_CLOSER) | (action == RET_R_ELSE_LOOP_L)) & ~l_closer)
-        loop_l = ((action == RET_R_ELSE_LOOP_L) | (action == LOOP_CLOSER)) & l_closer
-        loop_r = ((action == RET_L_ELSE_LOOP_R) | (action == LOOP_CLOSER)) & ~l_closer
+        l_strictly, r_strictly = t_l < t_r, t_r < t_l
+        ret_l = (action == RET_L) | ((action == RET_CLOSER) & l_closer) | ((action == RET_L_ELSE_LOOP_R) & l_strictly)
+        ret_r = (action == RET_R) | ((action == RET_CLOSER) & ~l_closer) | ((action == RET_R_ELSE_LOOP_L) & r_strictly)
+        loop_l = ((action == RET_R_ELSE_LOOP_L) & ~r_strictly) | ((action == LOOP_CLOSER) & l_closer)
+        loop_r = ((action == RET_L_ELSE_LOOP_R) & ~l_strictly) | ((action == LOOP_CLOSER) & ~l_closer)
         # Nothing lies beyond infinity: a loop from t = inf (inside both forever) returns.
         ret_l = classify & (ret_l | (loop_l & (t_l == dr.inf)))
         ret_r = classify & ~ret_l & (ret_r | (loop_r & (t_r == dr.inf)))

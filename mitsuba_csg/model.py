@@ -92,7 +92,7 @@ class Node:
         flat = lower(self)
         return flat.node_lower[flat.root].copy(), flat.node_upper[flat.root].copy()
 
-    def height(self) -> int:
+    def tree_height(self) -> int:
         """Number of operation levels on the longest root-to-leaf path of the input tree."""
         best, stack = 0, [(self, 0)]
         while stack:

@@ -45,7 +45,7 @@ class OptimizedModel:
     def bounds(self):
         return self.flat.node_lower[self.flat.root].copy(), self.flat.node_upper[self.flat.root].copy()
 
-    def height(self) -> int:
+    def tree_height(self) -> int:
         return self.flat.height
 
     def __repr__(self):
@@ -224,7 +224,7 @@ def _rotate_type1(t: _Tree, n1: int) -> bool:
     if t.kind[n2] != t.kind[n1]:
         return False
     t3, t2 = t.heavy(n2)
-    if t.height[t3] <= t.height[t1] + 1:
+    if t.height[t3] <= t.height[t1] + 1 or t.height[t3] <= t.height[t2]:
         return False
     before = t.height[n1]
     # Reuse node n2 as op(T1, T2) and re-link n1 = op(n2, T3).
@@ -290,6 +290,7 @@ def _leaf_count(t: _Tree, i: int) -> int:
 def _minimize_height(t: _Tree, root: int, max_growth: float) -> int:
     """Type-1 rotations everywhere, then type-2 distributions; returns leaves duplicated."""
     for n in t.postorder(root):
+        t.update(n)
         while _rotate_type1(t, n):
             pass
     n_leaves = _leaf_count(t, root)
@@ -298,11 +299,6 @@ def _minimize_height(t: _Tree, root: int, max_growth: float) -> int:
     while changed and budget[0] > 0:
         changed = False
         for n in t.postorder(root):
-            if t.kind[n] == L.K_LEAF:
-                continue
-            for child in (t.left[n], t.right[n]):
-                if t.kind[child] != L.K_LEAF:
-                    t.update(child)
             t.update(n)
             while _rotate_type1(t, n) or _distribute_type2(t, n, budget):
                 changed = True
@@ -421,7 +417,7 @@ def optimize(model, *, spatial: bool = True, minimize_height: bool = True, gener
 
     stats = {
         "primitives": baseline.num_prims,
-        "height_input": model.height(),
+        "height_input": model.tree_height(),
         "height_before": baseline.height,
         "height_after": flat.height,
         "nodes_before": baseline.num_nodes,

@@ -29,13 +29,29 @@ class Prepared:
     tree: KernelTree
 
 
-def prepare(model, backend=None, *, positive: bool = False, max_iterations: int | None = None) -> Prepared:
-    """Lower `model` and upload it for `backend` (default: the current Mitsuba variant's)."""
+def prepare(model, backend=None, *, optimize: bool = True, positive: bool = False,
+            max_iterations: int | None = None) -> Prepared:
+    """Optimize (or just lower) `model` and upload it for `backend` (default: Mitsuba's variant).
+
+    `optimize=False` traces the input tree as written, chains of one operation balanced in
+    input order; `positive=True` (with optimize=False) traces its positive form.
+    """
+    from .optimize import OptimizedModel
+    from .optimize import optimize as optimize_tree
     if isinstance(model, Prepared):
         return model
     if backend is None:
         backend = default_backend()
-    flat = model if isinstance(model, FlatTree) else lower(model, positive=positive)
+    if isinstance(model, FlatTree):
+        flat = model
+    elif isinstance(model, OptimizedModel):
+        flat = model.flat
+    elif not isinstance(model, Node):
+        raise CSGError(f"expected a CSG model, got {type(model).__name__}")
+    elif optimize:
+        flat = optimize_tree(model)[0].flat
+    else:
+        flat = lower(model, positive=positive)
     return Prepared(flat, upload(flat, backend, max_iterations))
 
 
@@ -84,8 +100,11 @@ def hit_normal(tree: KernelTree, prim, info, o, d, t, active):
     n = (rows[0].x * n_local.x + rows[1].x * n_local.y + rows[2].x * n_local.z,
          rows[0].y * n_local.x + rows[1].y * n_local.y + rows[2].y * n_local.z,
          rows[0].z * n_local.x + rows[1].z * n_local.y + rows[2].z * n_local.z)
-    n = dr.normalize(b.Array3f(*n))
-    n = dr.select((info & FLIP_BIT) != 0, -n, n)
+    n = b.Array3f(*n)
+    n = dr.select((info & FLIP_BIT) != 0, -n, n) * dr.rsqrt(dr.squared_norm(n))
+    # At a cone apex the surface has no normal: face the ray (outward for its hit class).
+    facing = dr.normalize(dr.select((info & 3) == X.ENTER, -d, d))
+    n = dr.select(dr.isfinite(n.x) & dr.isfinite(n.y) & dr.isfinite(n.z), n, facing)
     return dr.select(active, n, 0.0)
 
 
@@ -120,11 +139,12 @@ def _to_array3(b, a: np.ndarray):
 
 
 def trace(model, origins, directions, tmin: float = 0.0, tmax: float = np.inf, *,
-          max_iterations: int | None = None) -> Hits:
+          optimize: bool = True, max_iterations: int | None = None) -> Hits:
     """First hit of each ray on the CSG solid; numpy (N, 3) arrays in, `Hits` out.
 
-    `model` is a Node or the result of `prepare`. Rays are o + t d with t in (tmin, tmax];
-    d need not be unit length and t is in units of d.
+    `model` is a Node, an optimized model or the result of `prepare`. Rays are o + t d with
+    t in (tmin, tmax]; d need not be unit length and t is in units of d. The tree is
+    optimized first unless `optimize=False` (see `prepare`).
     """
     o, d = _rays(origins, "origins"), _rays(directions, "directions")
     if len(o) != len(d):
@@ -133,7 +153,7 @@ def trace(model, origins, directions, tmin: float = 0.0, tmax: float = np.inf, *
         raise CSGError(f"directions: row {int(np.flatnonzero(np.all(d == 0, axis=1))[0])} is the zero vector")
     if np.isnan(tmin) or np.isnan(tmax) or tmin > tmax:
         raise CSGError(f"need tmin <= tmax, got tmin={tmin}, tmax={tmax}")
-    prepared = model if isinstance(model, Prepared) else prepare(model, max_iterations=max_iterations)
+    prepared = prepare(model, optimize=optimize, max_iterations=max_iterations)
     b = prepared.tree.b
     if len(o) == 0:
         return Hits(np.zeros(0, np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int64),
@@ -157,16 +177,13 @@ _PROBE = np.array([0.5773502691896257, 0.5773502691896257, 0.5773502691896257]) 
 _PROBE /= np.linalg.norm(_PROBE)
 
 
-def contains(model, points) -> np.ndarray:
+def contains(model, points, *, optimize: bool = True) -> np.ndarray:
     """(N,) bool: which points lie inside the solid.
 
     A ray from each point finds the first boundary after it: an exit means the point is
     inside. Points on the boundary itself may go either way.
     """
     p = _rays(points, "points")
-    hits = trace(model, p, np.broadcast_to(_PROBE, p.shape), 0.0, np.inf)
+    hits = trace(model, p, np.broadcast_to(_PROBE, p.shape), 0.0, np.inf, optimize=optimize)
     return (hits.prim >= 0) & ~hits.entering
 
-
-def is_node(x) -> bool:
-    return isinstance(x, Node)

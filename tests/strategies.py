@@ -1,0 +1,161 @@
+"""Hypothesis strategies for random CSG models and rays aimed at them.
+
+Primitives are about unit size and placed within roughly [-2, 2]^3 so that they overlap
+often. Rays and points are drawn from a seed (numpy), which keeps hypothesis fast.
+"""
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import strategies as st
+
+from mitsuba_csg.model import difference, intersection, union
+from mitsuba_csg.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
+
+
+def _f(lo, hi):
+    return st.floats(lo, hi, allow_nan=False, allow_infinity=False)
+
+
+@st.composite
+def unit_vectors(draw):
+    v = np.array([draw(_f(-1, 1)) for _ in range(3)])
+    n = np.linalg.norm(v)
+    if n < 0.2:
+        v = np.array([0.0, 0.0, 1.0]) if n == 0 else v / n
+    return v / np.linalg.norm(v)
+
+
+@st.composite
+def convex_polyhedra(draw):
+    kind = draw(st.sampled_from(["random", "tetra", "octa"]))
+    if kind == "tetra":
+        n = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float) / np.sqrt(3)
+    elif kind == "octa":
+        n = np.array([[a, b, c] for a in (1, -1) for b in (1, -1) for c in (1, -1)], float) / np.sqrt(3)
+    else:
+        extra = draw(st.lists(unit_vectors(), min_size=0, max_size=6))
+        n = np.vstack([np.eye(3), -np.eye(3)] + [e[None] for e in extra])
+    size = draw(_f(0.4, 1.0))
+    jitter = draw(st.lists(_f(0.7, 1.2), min_size=len(n), max_size=len(n)))
+    d = size * np.asarray(jitter)
+    return ConvexPolyhedron(np.hstack([n, d[:, None]]))
+
+
+def primitives():
+    """Every primitive type, about unit size, in its own frame."""
+    cones = st.one_of(
+        st.builds(Cone, _f(0.2, 1.0), _f(0.2, 1.0), _f(0.4, 2.0)),
+        st.builds(Cone, _f(0.2, 1.0), st.just(0.0), _f(0.4, 2.0)),
+        st.builds(Cone, st.just(0.0), _f(0.2, 1.0), _f(0.4, 2.0)),
+    )
+    tori = st.tuples(_f(0.5, 1.5), _f(0.25, 0.8)).map(lambda rr: Torus(rr[0], rr[1] * rr[0] * 0.6))
+    return st.one_of(
+        st.builds(Sphere, _f(0.3, 1.2)),
+        st.builds(Box, st.tuples(_f(0.4, 2.0), _f(0.4, 2.0), _f(0.4, 2.0))),
+        st.builds(Cylinder, _f(0.2, 1.0), _f(0.4, 2.0)),
+        cones,
+        tori,
+        st.builds(Prism, st.integers(3, 8), _f(0.3, 1.0), _f(0.4, 2.0)),
+        convex_polyhedra(),
+    )
+
+
+@st.composite
+def transformed(draw, nodes, translate=1.5):
+    """A node with a random chain of transforms (possibly none)."""
+    node = draw(nodes)
+    for _ in range(draw(st.integers(0, 3))):
+        kind = draw(st.sampled_from(["translate", "translate", "rotate", "rotate", "scale", "nscale",
+                                     "mirror", "affine"]))
+        if kind == "translate":
+            node = node.translate(tuple(draw(_f(-translate, translate)) for _ in range(3)))
+        elif kind == "rotate":
+            axis = draw(st.one_of(st.sampled_from(["x", "y", "z"]), unit_vectors().map(tuple)))
+            node = node.rotate(axis, draw(_f(-180, 180)))
+        elif kind == "scale":
+            node = node.scale(draw(_f(0.5, 1.5)))
+        elif kind == "nscale":
+            node = node.scale(tuple(draw(_f(0.5, 1.5)) for _ in range(3)))
+        elif kind == "mirror":
+            node = node.scale(tuple(draw(st.sampled_from([1.0, -1.0])) for _ in range(3)))
+        else:
+            m = np.eye(4)
+            m[:3, :3] += np.array([[draw(_f(-0.35, 0.35)) for _ in range(3)] for _ in range(3)])
+            m[:3, 3] = [draw(_f(-1.0, 1.0)) for _ in range(3)]
+            node = node.transform(m)
+    return node
+
+
+def _binary(args):
+    op, a, b = args
+    return {"|": a | b, "&": a & b, "-": a - b}[op]
+
+
+def _nary(args):
+    op, xs = args
+    if op == "union":
+        return union(*xs)
+    if op == "intersection":
+        return intersection(*xs)
+    return difference(xs[0], *xs[1:])
+
+
+def _operations(children):
+    return transformed(st.one_of(
+        st.tuples(st.sampled_from(["|", "&", "-"]), children, children).map(_binary),
+        st.tuples(st.sampled_from(["union", "intersection", "difference"]),
+                  st.lists(children, min_size=1, max_size=4)).map(_nary),
+    ), translate=0.5)
+
+
+def models(max_leaves: int = 8):
+    """Random CSG trees (depth up to about 5) of transformed primitives."""
+    return st.recursive(transformed(primitives()), _operations, max_leaves=max_leaves)
+
+
+def make_rays(seed: int, n: int, radius: float = 6.0, target: float = 2.0, targets=None):
+    """Rays from a sphere of `radius` towards uniform points of [-target, target]^3.
+
+    With `targets` ((K, 3) points, e.g. the leaves' world origins), half of the rays aim at
+    one of them plus a normal jitter of 0.4 instead, so that they hit small models often.
+    Directions are not normalized (length between ~4 and ~9.5) half of the time.
+    """
+    rng = np.random.default_rng(seed)
+    o = rng.normal(size=(n, 3))
+    o *= radius / np.linalg.norm(o, axis=1, keepdims=True)
+    aim = rng.uniform(-target, target, size=(n, 3))
+    if targets is not None and len(targets):
+        targets = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
+        pick = rng.random(n) < 0.5
+        k = rng.integers(0, len(targets), size=n)
+        aim = np.where(pick[:, None], targets[k] + rng.normal(scale=0.4, size=(n, 3)), aim)
+    d = aim - o
+    unit = rng.random(n) < 0.5
+    d[unit] /= np.linalg.norm(d[unit], axis=1, keepdims=True)
+    return o, d
+
+
+def rays(n: int = 64, radius: float = 6.0):
+    """(origins, directions) arrays of n rays aimed at [-2, 2]^3."""
+    return st.integers(0, 2**32 - 1).map(lambda s: make_rays(s, n, radius))
+
+
+def seeds():
+    """A seed for make_rays / make_points when the targets depend on the drawn model."""
+    return st.integers(0, 2**32 - 1)
+
+
+def make_points(seed: int, n: int, extent: float = 3.0):
+    return np.random.default_rng(seed).uniform(-extent, extent, size=(n, 3))
+
+
+def points(n: int = 256, extent: float = 3.0):
+    return st.integers(0, 2**32 - 1).map(lambda s: make_points(s, n, extent))
+def aimed_rays(model, seed: int, n: int = 64, radius: float = 6.0):
+    """make_rays with half of the rays aimed near the model's primitives (their world origins)."""
+    try:                                 # the test reference, a sibling module
+        from .reference import leaf_list
+    except ImportError:
+        from reference import leaf_list
+    targets = np.array([world[:3, 3] for _, world in leaf_list(model)])
+    return make_rays(seed, n, radius, targets=targets)

@@ -1,0 +1,311 @@
+"""The automaton against analytic answers and the independent float64 reference."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+import mitsuba_csg as csg
+import reference as ref
+from agreement import compare
+from mitsuba_csg.generators import cheese
+from strategies import make_points, make_rays, models
+
+# Each model is traced as lowered (general form), in positive form, and optimized.
+FORMS = {
+    "general": dict(optimize=False),
+    "positive": dict(optimize=False, positive=True),
+    "optimized": dict(optimize=True),
+}
+
+
+def trace(model, o, d, form="general", **kw):
+    prepared = csg.prepare(model, **FORMS[form])
+    return csg.trace(prepared, o, d, **kw)
+
+
+def axis_rays(origin, direction, n=1):
+    return np.tile(np.asarray(origin, float), (n, 1)), np.tile(np.asarray(direction, float), (n, 1))
+
+
+# ---- Analytic answers, one primitive at a time ----
+
+@pytest.mark.parametrize("form", FORMS)
+@pytest.mark.parametrize("model, origin, direction, t, normal", [
+    (csg.Sphere(1.0), (0, 0, -5), (0, 0, 1), 4.0, (0, 0, -1)),
+    (csg.Sphere(2.0).translate((1, 0, 0)), (1, -10, 0), (0, 2, 0), 4.0, (0, -1, 0)),
+    (csg.Box((2, 4, 6)), (-10, 0.5, 0.5), (1, 0, 0), 9.0, (-1, 0, 0)),
+    (csg.Box((2, 4, 6)), (0.2, 0.3, 10), (0, 0, -1), 7.0, (0, 0, 1)),
+    (csg.Cylinder(1.0, 2.0), (5, 0, 0), (-1, 0, 0), 4.0, (1, 0, 0)),
+    (csg.Cylinder(1.0, 2.0), (0.5, 0, 5), (0, 0, -1), 4.0, (0, 0, 1)),
+    (csg.Cone(1.0, 0.0, 2.0), (0, 0, 5), (0, 0, -1), 4.0, (0, 0, 1)),            # apex
+    (csg.Cone(1.0, 0.0, 2.0), (0, 0, -5), (0, 0, 1), 4.0, (0, 0, -1)),           # base
+    (csg.Cone(0.0, 1.0, 2.0), (5, 0, 0), (-1, 0, 0), 4.5, (2 / 5 ** 0.5, 0, -1 / 5 ** 0.5)),
+    (csg.Torus(2.0, 0.5), (-10, 0, 0), (1, 0, 0), 7.5, (-1, 0, 0)),
+    (csg.Torus(2.0, 0.5), (0, 0, 0), (1, 0, 0), 1.5, (-1, 0, 0)),               # from the hole
+    (csg.Torus(2.0, 0.5), (2, 0, 10), (0, 0, -1), 9.5, (0, 0, 1)),
+    (csg.Prism(6, 1.0, 2.0), (-10, 0, 0), (1, 0, 0), 9.0, (-1, 0, 0)),
+    (csg.ConvexPolyhedron([[1, 0, 0, 1], [-1, 0, 0, 1], [0, 1, 0, 1], [0, -1, 0, 1], [0, 0, 1, 1],
+                           [0, 0, -1, 1], [1, 1, 1, 1.5]]), (5, 5, 5), (-1, -1, -1), 5 - 0.5, (1, 1, 1)),
+])
+def test_primitive_first_hit(model, origin, direction, t, normal, form):
+    o, d = axis_rays(origin, direction)
+    hits = trace(model, o, d, form)
+    assert hits.t[0] == pytest.approx(t, rel=1e-5)
+    assert hits.prim[0] == 0
+    n = np.asarray(normal, float)
+    np.testing.assert_allclose(hits.normal[0], n / np.linalg.norm(n), atol=1e-5)
+    assert hits.entering[0]
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_boolean_analytic(form):
+    a = csg.Sphere(1.0)
+    b = csg.Sphere(1.0).translate((1.0, 0, 0))
+    o, d = axis_rays((-5, 0, 0), (1, 0, 0))
+    assert trace(a | b, o, d, form).t[0] == pytest.approx(4.0)
+    assert trace(a & b, o, d, form).t[0] == pytest.approx(5.0)
+    assert trace(b - a, o, d, form).t[0] == pytest.approx(6.0)            # exit of the subtracted sphere
+    h = trace(b - a, o, d, form)
+    np.testing.assert_allclose(h.normal[0], [-1, 0, 0], atol=1e-6)        # flipped: outward of the solid
+    assert h.prim[0] == 1 and h.entering[0]
+    # from inside: the first boundary is an exit
+    h = trace(a | b, *axis_rays((0.5, 0, 0), (1, 0, 0)), form)
+    assert h.t[0] == pytest.approx(1.5) and not h.entering[0] and h.prim[0] == 1
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_tmin_tmax(form):
+    m = csg.Box(2.0) - csg.Sphere(0.5)
+    o, d = axis_rays((-5, 0, 0), (1, 0, 0))
+    assert trace(m, o, d, form).t[0] == pytest.approx(4.0)
+    assert trace(m, o, d, form, tmin=4.0).t[0] == pytest.approx(4.5)     # strictly after tmin
+    assert trace(m, o, d, form, tmin=4.2).t[0] == pytest.approx(4.5)
+    assert trace(m, o, d, form, tmin=4.6).t[0] == pytest.approx(5.5)
+    assert np.isinf(trace(m, o, d, form, tmax=3.9).t[0])
+    assert trace(m, o, d, form, tmax=4.0).t[0] == pytest.approx(4.0)
+
+
+# ---- Random trees against the reference ----
+
+@pytest.mark.parametrize("form", FORMS)
+@given(model=models(max_leaves=8), seed=st.integers(0, 2**31))
+def test_random_trees_agree_with_reference(model, seed, form):
+    targets = [leaf.matrix[:3, 3] for leaf in model.leaves()]
+    o, d = make_rays(seed, 96, targets=targets)
+    hits = trace(model, o, d, form)
+    compare(model, hits, o, d)
+
+
+@given(model=models(max_leaves=6), seed=st.integers(0, 2**31))
+def test_width_one_matches_wide(model, seed):
+    """Dr.Jit 1.5's LLVM local-array bug shows as a difference between width 1 and wide."""
+    o, d = make_rays(seed, 64, targets=[leaf.matrix[:3, 3] for leaf in model.leaves()])
+    prepared = csg.prepare(model)
+    wide = csg.trace(prepared, o, d)
+    for i in range(0, 64, 9):
+        single = csg.trace(prepared, o[i:i + 1], d[i:i + 1])
+        assert single.t[0] == wide.t[i] or (np.isnan(single.t[0]) and np.isnan(wide.t[i]))
+        assert single.prim[0] == wide.prim[i]
+
+
+@given(model=models(max_leaves=8), seed=st.integers(0, 2**31))
+def test_normals_point_outward(model, seed):
+    """Along the line through the hit point in the normal's direction, the reference sees the
+    solid's boundary at the hit point, and it is an exit: inside before, outside after."""
+    o, d = make_rays(seed, 64, targets=[leaf.matrix[:3, 3] for leaf in model.leaves()])
+    hits = csg.trace(model, o, d)
+    stable = ref.stable_mask(model, o, d)
+    hit = np.flatnonzero(np.isfinite(hits.t) & stable)
+    if not len(hit):
+        return
+    p = o[hit] + hits.t[hit, None].astype(np.float64) * d[hit]
+    n = hits.normal[hit].astype(np.float64)
+    for k, spans in enumerate(ref.intervals(model, p, n)):
+        ends = [(abs(s), "enter") for s, _, _, _ in spans] + [(abs(e), "exit") for _, e, _, _ in spans]
+        dist, kind = min(ends)
+        assert dist < 1e-3, f"hit point {p[k]} is {dist} from the boundary along its normal"
+        assert kind == "exit", f"normal {n[k]} at {p[k]} points into the solid"
+
+
+@given(model=models(max_leaves=8), seed=st.integers(0, 2**31))
+def test_contains_agrees_with_reference(model, seed):
+    p = make_points(seed, 300)
+    got = csg.contains(model, p)
+    expected = ref.contains(model, p)
+    # points within 1e-4 of the boundary may go either way: test with jittered copies
+    rng = np.random.default_rng(seed)
+    robust = np.ones(len(p), bool)
+    for _ in range(4):
+        robust &= ref.contains(model, p + rng.normal(scale=2e-4, size=p.shape)) == expected
+    assert np.array_equal(got[robust], expected[robust])
+
+
+# ---- Robustness ----
+
+def test_rays_starting_inside_and_on_surface():
+    m = csg.Box(2.0) - csg.Sphere(0.5)
+    o, d = axis_rays((0.75, 0, 0), (1, 0, 0))
+    h = csg.trace(m, o, d)
+    assert h.t[0] == pytest.approx(0.25) and not h.entering[0]
+    h = csg.trace(m, *axis_rays((-1.0, 0, 0), (1, 0, 0)))          # starts on the face: next is the hole
+    assert h.t[0] == pytest.approx(0.5)
+
+
+def test_tangent_and_edge_rays_terminate_deterministically():
+    m = (csg.Sphere(1.0) | csg.Box(1.0).translate((1.5, 0, 0))) - csg.Cylinder(0.3, 4.0)
+    rng = np.random.default_rng(1)
+    # rays grazing the sphere (distance exactly 1 from its centre) and along box edges
+    o = np.concatenate([np.tile([[-5.0, 1.0, 0.0]], (8, 1)), np.tile([[-5.0, 0.5, 0.5]], (8, 1)),
+                        rng.uniform(-3, 3, (200, 3))])
+    d = np.concatenate([np.tile([[1.0, 0.0, 0.0]], (16, 1)), rng.normal(size=(200, 3))])
+    a = csg.trace(m, o, d)
+    b = csg.trace(m, o, d)
+    assert a.unfinished == 0
+    np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(a.prim, b.prim)
+
+
+def test_coincident_faces():
+    slab = csg.Box((2, 2, 2))
+    cases = [slab - csg.Box((1, 2, 2)).translate((0.5, 0, 0)),          # shares three faces
+             slab | csg.Box((2, 2, 2)).translate((2, 0, 0)),             # touching faces
+             slab & csg.Box((2, 2, 2)).translate((1, 0, 0)),
+             slab - slab]                                                 # empty
+    rng = np.random.default_rng(2)
+    o = rng.uniform(-4, 4, (500, 3))
+    d = rng.normal(size=(500, 3))
+    o[:50] = [-5, 0, 0]
+    d[:50] = [1, 0, 0]
+    for m in cases:
+        for form in FORMS:
+            h = trace(m, o, d, form)
+            assert h.unfinished == 0
+            np.testing.assert_array_equal(h.t, trace(m, o, d, form).t)
+    assert np.all(np.isinf(trace(slab - slab, o, d).t))
+    h = trace(cases[1], *axis_rays((-5, 0, 0), (1, 0, 0)))
+    assert h.t[0] == pytest.approx(4.0)
+
+
+@pytest.mark.parametrize("scale", [1e-4, 1.0, 1e5])
+def test_huge_and_tiny_scales(scale):
+    """Scaling the scene and the rays (o' = s o + c, d' = s d) leaves every t unchanged."""
+    m = csg.Box(2.0) - csg.Sphere(0.6).translate((1, 0, 0)) | csg.Torus(1.0, 0.3).translate((0, 0, 2))
+    shift = np.array([3.0, -1.0, 0.5]) * scale
+    scaled = m.scale(scale).translate(shift)
+    o, d = make_rays(7, 300, radius=6.0, target=1.5)
+    hits = csg.trace(scaled, o * scale + shift, d * scale)
+    stable, total = compare(m, hits, o, d)
+    assert stable > 0.8 * total
+
+
+def test_axis_parallel_rays_on_slab_planes():
+    m = csg.Box(2.0) | csg.Box(2.0).translate((2, 0, 0))
+    # rays inside the plane y = 1 (a face plane), parallel to x and z
+    o = np.array([[-5.0, 1.0, 0.0], [-5.0, 0.999, 0.0], [0.5, 1.0, -5.0], [0.5, -1.0, -5.0]])
+    d = np.array([[1.0, 0, 0], [1.0, 0, 0], [0, 0, 1.0], [0, 0, 1.0]])
+    h = csg.trace(m, o, d)
+    assert h.unfinished == 0
+    assert h.t[1] == pytest.approx(4.0)
+
+
+def test_iteration_bound_is_reported():
+    m = cheese(50, seed=3)
+    o, d = make_rays(3, 200, radius=4.0, target=0.8)
+    with pytest.warns(csg.IterationLimitWarning):
+        h = csg.trace(m, o, d, max_iterations=5)
+    assert h.unfinished > 0
+    assert np.all(np.isnan(h.t[np.isnan(h.t)]))
+    assert np.count_nonzero(np.isnan(h.t)) == h.unfinished
+
+
+def test_torus_has_no_false_roots():
+    """Grazing and far-away rays: every kernel hit is a real boundary, every miss a real miss."""
+    m = csg.Torus(1.0, 0.25)
+    rng = np.random.default_rng(5)
+    n = 4000
+    target = rng.uniform(-1.3, 1.3, (n, 3)) * [1, 1, 0.3]
+    o = rng.normal(size=(n, 3))
+    o *= (rng.choice([3.0, 30.0, 300.0], n) / np.linalg.norm(o, axis=1))[:, None]
+    d = target - o
+    hits = csg.trace(m, o, d)
+    t_ref = ref.first_hit(m, o, d)[0]
+    hit = np.isfinite(hits.t)
+    p = o[hit] + hits.t[hit, None].astype(np.float64) * d[hit]
+    # a hit lies on the torus surface (distance from the tube's core circle == minor radius)
+    dist = np.hypot(np.hypot(p[:, 0], p[:, 1]) - 1.0, p[:, 2])
+    assert np.max(np.abs(dist - 0.25)) < 1e-3 * np.max(np.linalg.norm(o[hit], axis=1))
+    # and agrees with the reference except within a whisker of tangency
+    stable = ref.stable_mask(m, o, d)
+    np.testing.assert_array_equal(np.isfinite(hits.t[stable]), np.isfinite(t_ref[stable]))
+    assert stable.mean() > 0.95
+
+
+# ---- Large and deep trees ----
+
+def _sphere_union_reference(centres, radii, o, d):
+    """First hit on a union of spheres from outside: the nearest sphere entry."""
+    oc = o[:, None, :] - centres[None]
+    a = np.einsum("ij,ij->i", d, d)[:, None]
+    b = np.einsum("nkj,nj->nk", oc, d)
+    c = np.einsum("nkj,nkj->nk", oc, oc) - radii[None] ** 2
+    disc = b * b - a * c
+    t = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / a, np.inf)
+    t = np.where(t > 0, t, np.inf)
+    return t.min(1), t.argmin(1)
+
+
+@pytest.mark.parametrize("optimize", [False, True])
+def test_left_deep_union_of_10k_spheres(optimize):
+    rng = np.random.default_rng(11)
+    centres = rng.uniform(-5, 5, (10000, 3))
+    radii = rng.uniform(0.05, 0.3, 10000)
+    model = csg.Sphere(float(radii[0])).translate(centres[0])
+    for c, r in zip(centres[1:], radii[1:]):
+        model = model | csg.Sphere(float(r)).translate(c)
+    assert model.tree_height() == 9999
+    o, d = make_rays(12, 400, radius=12.0, target=5.0)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    hits = csg.trace(model, o, d, optimize=optimize)
+    t_ref, prim_ref = _sphere_union_reference(centres, radii, o, d)
+    assert hits.unfinished == 0
+    np.testing.assert_array_equal(np.isfinite(hits.t), np.isfinite(t_ref))
+    hit = np.isfinite(t_ref)
+    np.testing.assert_allclose(hits.t[hit], t_ref[hit], rtol=1e-4, atol=1e-5)
+    assert np.mean(hits.prim[hit] == prim_ref[hit]) > 0.999   # ties between overlapping entries aside
+
+
+@pytest.mark.parametrize("optimize", [False, True])
+def test_cheese_1000(optimize):
+    model = cheese(1000, seed=4)
+    o, d = make_rays(13, 150, radius=5.0, target=1.0)
+    hits = csg.trace(model, o, d, optimize=optimize)
+    stable, total = compare(model, hits, o, d)
+    assert stable > 0.7 * total
+
+
+# ---- Bad input ----
+
+def test_bad_rays_are_refused():
+    m = csg.Sphere(1.0)
+    with pytest.raises(csg.CSGError, match="origins"):
+        csg.trace(m, [[np.nan, 0, 0]], [[1, 0, 0]])
+    with pytest.raises(csg.CSGError, match="zero vector"):
+        csg.trace(m, [[0, 0, 0]], [[0, 0, 0]])
+    with pytest.raises(csg.CSGError, match="differ in length"):
+        csg.trace(m, np.zeros((2, 3)), np.ones((3, 3)))
+    with pytest.raises(csg.CSGError, match="shape"):
+        csg.trace(m, np.zeros((2, 2)), np.ones((2, 2)))
+    with pytest.raises(csg.CSGError, match="tmin"):
+        csg.trace(m, [[0, 0, 0]], [[1, 0, 0]], tmin=2.0, tmax=1.0)
+    assert len(csg.trace(m, np.zeros((0, 3)), np.zeros((0, 3))).t) == 0
+
+
+def test_tree_too_deep_is_refused():
+    from mitsuba_csg import kernel
+    m = csg.Sphere(1.0)
+    for i in range(kernel.MAX_STACK + 5):           # alternating operations cannot be flattened
+        m = (m | csg.Sphere(0.5).translate((i * 0.01, 0, 0))) if i % 2 else (m - csg.Box(0.1).translate((0, i * 0.01, 3)))
+    with pytest.raises(csg.TreeTooDeepError, match="optimize"):
+        csg.prepare(m, optimize=False)
