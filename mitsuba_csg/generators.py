@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from .model import Node, difference, union
-from .primitives import Box, Sphere
+from .primitives import Box, Cone, Prism, Sphere
 
 
 def cheese(holes: int = 500, seed: int = 0, size: float = 2.0) -> Node:
@@ -31,4 +31,38 @@ def sphere_chain(count: int, seed: int = 0) -> Node:
     return model
 
 
-__all__ = ["cheese", "sphere_chain", "union"]
+def city(buildings: int = 340, seed: int = 0, windows: int = 2) -> Node:
+    """A city as one CSG tree: a union, in row-major file order, of buildings on a square grid.
+
+    A building is a tower (box or hexagonal prism) with a roof (cone or prism), minus
+    `windows` window boxes per facade side and storey band (4 sides x `windows`), so a
+    building has 2 + 4 * windows primitives (10 by default; 340 buildings ~ the paper's 3385).
+    """
+    rng = np.random.default_rng(seed)
+    side = int(np.ceil(np.sqrt(buildings)))
+    blocks = []
+    for i in range(buildings):
+        gx, gy = i % side, i // side
+        x, y = 3.0 * gx, 3.0 * gy
+        width = rng.uniform(1.2, 2.2)
+        height = rng.uniform(2.0, 9.0)
+        hexagonal = rng.random() < 0.3
+        if hexagonal:
+            tower = Prism(6, 0.5 * width, height)
+            roof = Cone(0.5 * width, 0.0, 0.3 * width + 0.5).translate((0, 0, 0.5 * height + 0.15 * width + 0.25))
+        else:
+            tower = Box((width, width, height))
+            roof = Prism(4, 0.35 * width, 0.6).rotate("z", 45).translate((0, 0, 0.5 * height + 0.3))
+        holes = []
+        half = 0.5 * width
+        for k in range(windows):
+            z = (k + 0.5) / windows * 0.8 * height - 0.4 * height
+            for angle in (0, 90, 180, 270):
+                w = Box((0.3, 0.35 * width, 0.12 * height)).translate((half, 0, z)).rotate("z", angle)
+                holes.append(w)
+        building = difference(tower | roof, *holes).translate((x, y, 0.5 * height))
+        blocks.append(building)
+    return union(*blocks)
+
+
+__all__ = ["cheese", "city", "sphere_chain"]

@@ -232,7 +232,8 @@ def _checked_polyhedron(planes, name: str) -> tuple[np.ndarray, np.ndarray]:
     triples = np.fromiter(itertools.chain.from_iterable(itertools.combinations(range(len(n)), 3)),
                           dtype=np.int64).reshape(-1, 3)
     mats = n[triples]
-    dets = np.linalg.det(mats)
+    with np.errstate(divide="ignore", invalid="ignore"):   # parallel planes give det 0
+        dets = np.linalg.det(mats)
     ok = np.abs(dets) > 1e-10
     pts = np.linalg.solve(mats[ok], d[triples[ok]][..., None])[..., 0]
     pts = pts[np.all(pts @ n.T <= d + 1e-7 * scale, axis=1)]

@@ -94,7 +94,9 @@ def affine(matrix) -> np.ndarray:
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
         raise ModelError(f"transform: the last row must be (0, 0, 0, 1) (affine), got {m[3].tolist()}")
     check_invertible(m, "transform")
-    return _frozen(m.copy())
+    m = m.copy()
+    m[3] = (0.0, 0.0, 0.0, 1.0)     # exactly affine: the kernel reads only the top 3x4
+    return _frozen(m)
 
 
 def check_invertible(m: np.ndarray, what: str) -> None:

@@ -151,6 +151,8 @@ def make_points(seed: int, n: int, extent: float = 3.0):
 
 def points(n: int = 256, extent: float = 3.0):
     return st.integers(0, 2**32 - 1).map(lambda s: make_points(s, n, extent))
+
+
 def aimed_rays(model, seed: int, n: int = 64, radius: float = 6.0):
     """make_rays with half of the rays aimed near the model's primitives (their world origins)."""
     try:                                 # the test reference, a sibling module
