@@ -1,0 +1,148 @@
+"""Primary-ray throughput of `trace` at 1280x720: Mrays/s, automaton steps, compile time.
+
+    ./run.sh bench trace_throughput.py [--scenes cheese-1000,city-3385] [--size 1280x720]
+
+For each scene: the unoptimized tree ('-': input chains balanced in input order) and the
+optimized one ('+'), both measured in this run; their ratio is the optimizer's speed-up.
+Kernel compile time is measured cold in a fresh process with an empty Dr.Jit kernel cache.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+import common
+
+SCENES = {
+    "cheese-500": lambda g: g.cheese(500),
+    "cheese-1000": lambda g: g.cheese(1000),
+    "cheese-8000": lambda g: g.cheese(8000),
+    "city-3385": lambda g: g.city(340),
+    "city-34k": lambda g: g.city(3400),
+}
+
+
+def rays_for(model, width, height):
+    from mitsuba_csg.camera import framing, look_at_rays
+    lo, hi = model.bounds()
+    origin, target = framing(lo, hi, 40.0, width / height)
+    return look_at_rays(origin, target, fov_degrees=40.0, width=width, height=height)
+
+
+def measure(prepared, o, d, repeats):
+    import drjit as dr
+
+    from mitsuba_csg.tracing import _to_array3, trace_rays
+    b = prepared.tree.b
+    O, D = _to_array3(b, o), _to_array3(b, d)
+    dr.eval(O, D)
+    out = {}
+
+    def run():
+        h = trace_rays(prepared, O, D)
+        dr.eval(h.t, h.normal, h.prim, h.steps, h.finished)
+        dr.sync_thread()
+        out["h"] = h
+    timing = common.best_of(run, repeats)
+    h = out["h"]
+    steps = h.steps.numpy()
+    return timing, {"mean_steps": float(steps.mean()), "max_steps": int(steps.max()),
+                    "hit_fraction": float(np.isfinite(h.t.numpy()).mean()),
+                    "unfinished": int((~h.finished.numpy()).sum())}
+
+
+def cold_compile(scene: str, size: str) -> dict:
+    """First trace in a fresh process with an empty Dr.Jit kernel cache, then with a warm one.
+
+    Reports the LLVM compile time of the traversal kernel from Dr.Jit's kernel history,
+    and the wall time of the first trace (Python tracing of the kernel included).
+    """
+    code = ("import sys; sys.path.insert(0, {root!r}); sys.path.insert(0, {bench!r});"
+            "import trace_throughput as tt; tt._first_trace({scene!r}, {size!r})")
+    code = code.format(root=str(common.ROOT), bench=str(common.ROOT / "benchmarks"), scene=scene, size=size)
+    out = {}
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, DRJIT_CACHE_DIR=cache)
+        for label in ("cold", "warm_cache"):
+            run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+            wall, compile_ms, ops = run.stdout.split()[-3:]
+            out[f"first_trace_{label}_s"] = float(wall)
+            out[f"kernel_compile_{label}_s"] = float(compile_ms) / 1e3
+            out["kernel_ops"] = int(ops)
+    out["compile_s"] = out["kernel_compile_cold_s"]
+    return out
+
+
+def _first_trace(scene: str, size: str) -> None:
+    import drjit as dr
+
+    import mitsuba_csg as csg
+    from mitsuba_csg import generators
+    from mitsuba_csg.tracing import _to_array3, trace_rays
+    width, height = (int(v) for v in size.split("x"))
+    model = SCENES[scene](generators)
+    prepared = csg.prepare(model)
+    o, d = rays_for(model, width, height)
+    O, D = _to_array3(prepared.tree.b, o), _to_array3(prepared.tree.b, d)
+    dr.eval(O, D)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    t0 = time.perf_counter()
+    h = trace_rays(prepared, O, D)
+    dr.eval(h.t, h.normal, h.prim, h.steps, h.finished)
+    dr.sync_thread()
+    wall = time.perf_counter() - t0
+    kernels = [k for k in dr.kernel_history() if "backend_time" in k]
+    biggest = max(kernels, key=lambda k: k["operation_count"])
+    compile_ms = sum(k["codegen_time"] + k["backend_time"] for k in kernels)
+    print(wall, compile_ms, biggest["operation_count"])
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", default="cheese-1000,city-3385")
+    parser.add_argument("--size", default="1280x720")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--no-compile", action="store_true", help="skip the cold-compile measurement")
+    parser.add_argument("--name", default="trace_throughput")
+    args = parser.parse_args(argv)
+    import mitsuba_csg as csg
+    from mitsuba_csg import generators
+    width, height = (int(v) for v in args.size.split("x"))
+    rows = []
+    for scene in args.scenes.split(","):
+        model = SCENES[scene](generators)
+        o, d = rays_for(model, width, height)
+        results = {}
+        for label, optimize in (("-", False), ("+", True)):
+            t0 = time.perf_counter()
+            prepared = csg.prepare(model, optimize=optimize)
+            prep_s = time.perf_counter() - t0
+            timing, info = measure(prepared, o, d, args.repeats)
+            n = width * height
+            results[label] = dict(scene=scene, tree=label, primitives=prepared.flat.num_prims,
+                                  depth=prepared.flat.height, prepare_s=prep_s,
+                                  mrays_s=n / timing["min_s"] / 1e6, fps=1.0 / timing["min_s"],
+                                  median_mrays_s=n / timing["median_s"] / 1e6, **timing, **info)
+            rows.append(results[label])
+        results["+"]["speedup"] = results["-"]["min_s"] / results["+"]["min_s"]
+        if not args.no_compile:
+            results["+"].update(cold_compile(scene, args.size))
+    columns = [("scene", "scene", "s"), ("tree", "tree", "s"), ("primitives", "prims", "d"), ("depth", "depth", "d"),
+               ("fps", "fps", ".2f"), ("mrays_s", "Mrays/s", ".2f"), ("median_mrays_s", "median", ".2f"),
+               ("mean_steps", "steps/ray", ".1f"), ("max_steps", "max steps", "d"), ("speedup", "+/-", ".1f"),
+               ("compile_s", "compile s", ".2f"), ("first_trace_cold_s", "1st trace s", ".2f"),
+               ("unfinished", "unfinished", "d")]
+    print(f"{width}x{height} primary rays, {common.machine()['cpu']}, {os.cpu_count()} cores")
+    print(common.table(rows, columns))
+    path = common.write(args.name, {"machine": common.machine(), "size": [width, height], "rows": rows})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
