@@ -276,6 +276,46 @@ def _node_bounds(kind, negative, left, right, prim_lower, prim_upper):
     return lower, upper, height, negative
 
 
+def primitive_tree(prims) -> FlatTree:
+    """A FlatTree with the primitive arrays of `prims` (from `_items`) and no nodes yet."""
+    (shape, to_canonical, to_world, param, plane_start, plane_count, planes,
+     p_lower, p_upper, materials) = _primitive_arrays(prims)
+    empty = np.zeros(0, np.int64)
+    return FlatTree(empty, np.zeros(0, bool), empty, empty, empty, np.zeros((0, 3)), np.zeros((0, 3)), empty,
+                    shape, to_canonical, to_world, param, plane_start, plane_count, p_lower, p_upper,
+                    materials, planes, 0)
+
+
+def lowered_height(root_item) -> int:
+    """Height of the binary tree `lower` emits for an item tree (general form)."""
+    def balanced(hs, lo, hi):
+        if hi - lo == 1:
+            return hs[lo]
+        mid = (lo + hi) // 2
+        return 1 + max(balanced(hs, lo, mid), balanced(hs, mid, hi))
+
+    heights = []
+    stack = [(root_item, False)]
+    while stack:
+        item, done = stack.pop()
+        if item[0] == "leaf":
+            heights.append(0)
+            continue
+        op, kids = item
+        if not done:
+            stack.append((item, True))
+            stack.extend((k, False) for k in reversed(kids))
+            continue
+        hs = heights[len(heights) - len(kids):]
+        del heights[len(heights) - len(kids):]
+        if op == DIFFERENCE:
+            rest = hs[1:]
+            heights.append(1 + max(hs[0], balanced(rest, 0, len(rest))))
+        else:
+            heights.append(balanced(hs, 0, len(hs)))
+    return heights[0]
+
+
 def lower(model: Node, positive: bool = False) -> FlatTree:
     """Flatten `model` into a FlatTree; `positive=True` gives the positive form."""
     prims: list = []

@@ -386,7 +386,7 @@ def optimize(model, *, spatial: bool = True, minimize_height: bool = True, gener
     t0 = time.perf_counter()
     prims: list = []
     root_item = L._items(model, prims)
-    baseline = L.lower(model)          # the unoptimized tree the kernel would trace
+    base = L.primitive_tree(prims)     # primitive arrays only; no node arrays yet
     seconds["lower"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -394,7 +394,7 @@ def optimize(model, *, spatial: bool = True, minimize_height: bool = True, gener
     seconds["positive_form"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    lower, upper, negative, leaves = _nary_bounds(kind, prim, neg, children, baseline.prim_lower, baseline.prim_upper)
+    lower, upper, negative, leaves = _nary_bounds(kind, prim, neg, children, base.prim_lower, base.prim_upper)
     tree = _Tree()
     if kind[0] == L.K_LEAF:
         root = tree.add(L.K_LEAF, prim=int(prim[0]), neg=bool(neg[0]))
@@ -412,15 +412,15 @@ def optimize(model, *, spatial: bool = True, minimize_height: bool = True, gener
 
     t0 = time.perf_counter()
     general = _general_form(tree, root) if general_form else None
-    flat = _to_flat(*general, baseline) if general is not None else _to_flat(tree, root, baseline)
+    flat = _to_flat(*general, base) if general is not None else _to_flat(tree, root, base)
     seconds["reverse"] = time.perf_counter() - t0
 
     stats = {
-        "primitives": baseline.num_prims,
+        "primitives": base.num_prims,
         "height_input": model.tree_height(),
-        "height_before": baseline.height,
+        "height_before": L.lowered_height(root_item),   # the tree `lower` would trace
         "height_after": flat.height,
-        "nodes_before": baseline.num_nodes,
+        "nodes_before": 2 * base.num_prims - 1,
         "nodes_after": flat.num_nodes,
         "leaves_duplicated": duplicated,
         "positive_form": general is None,
