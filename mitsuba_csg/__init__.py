@@ -14,6 +14,22 @@ from .model import Node, Operation, Primitive, difference, intersection, union  
 from .primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus  # noqa: E402
 from .optimize import OptimizedModel, optimize  # noqa: E402
 from .tracing import Hits, IterationLimitWarning, Prepared, contains, prepare, trace, trace_rays  # noqa: E402
+from .models import model_ref  # noqa: E402
+
+
+def _register_plugins() -> None:
+    # The plugins live in plugins/ (DESIGN.md §1); installed, that folder is the subpackage
+    # mitsuba_csg.plugins. In a source checkout it sits beside this package: look there too.
+    import os
+    beside = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if not os.path.isdir(os.path.join(os.path.dirname(__file__), "plugins")) and \
+            os.path.isfile(os.path.join(beside, "plugins", "__init__.py")) and beside not in __path__:
+        __path__.append(beside)
+    from .plugins import register
+    register()
+
+
+_register_plugins()
 
 
 def to_mesh(model, segments: int = 64):
@@ -25,5 +41,5 @@ def to_mesh(model, segments: int = 64):
 __all__ = [
     "Box", "CSGError", "Cone", "ConvexPolyhedron", "Cylinder", "Hits", "IterationLimitWarning", "ModelError",
     "Node", "Operation", "OptimizedModel", "Prepared", "Primitive", "Prism", "Sphere", "Torus", "TreeTooDeepError",
-    "contains", "difference", "intersection", "optimize", "prepare", "to_mesh", "trace", "trace_rays", "union",
+    "contains", "difference", "model_ref", "intersection", "optimize", "prepare", "to_mesh", "trace", "trace_rays", "union",
 ]

@@ -1,0 +1,85 @@
+"""What the csg_* integrators share: finding CSG shapes and intersecting scenes with them."""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_csg.tracing import trace_rays
+
+from .csg_shape import CSGShape
+
+
+class SceneCSG:
+    """The CSG shapes of a scene and whether anything else (meshes, spheres, ...) is in it."""
+
+    def __init__(self, scene: mi.Scene):
+        shapes = scene.shapes()
+        self.csg = [s for s in shapes if isinstance(s, CSGShape)]
+        self.shape_index = {id(s): i for i, s in enumerate(shapes)}
+        # Embree costs tens of ms per frame even for tiny scenes: skip it if all is CSG.
+        self.has_others = len(self.csg) < len(shapes)
+
+    def intersect(self, scene: mi.Scene, ray: mi.Ray3f, active):
+        """Nearest surface interaction over Mitsuba's shapes and the CSG shapes.
+
+        Returns (si, bsdf, csg_hit, csg_prim, csg_shape): the BSDF pointer per lane (per
+        primitive material on CSG hits), whether the hit is on a CSG shape, and which.
+        """
+        if self.has_others:
+            si = scene.ray_intersect(ray, mi.RayFlags.All, coherent=False, active=active)
+        else:
+            si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray.d))
+            si.t = dr.inf
+            si.wavelengths = ray.wavelengths
+        bsdf = si.bsdf(ray)
+        csg_hit = mi.Bool(False)
+        csg_prim = mi.UInt32(0)
+        csg_shape = mi.UInt32(0)
+        for k, shape in enumerate(self.csg):
+            hits = trace_rays(shape.prepared, ray.o, ray.d, 0.0, dr.detach(dr.minimum(ray.maxt, si.t)))
+            closer = active & (hits.t < si.t) & dr.isfinite(hits.t)
+            closer = mi.Bool(closer)
+            t = mi.Float(hits.t)
+            n = mi.Normal3f(hits.normal)
+            prim = mi.UInt32(hits.prim)
+            csg_si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray.d))
+            csg_si.t = t
+            csg_si.p = ray(t)
+            csg_si.n = n
+            csg_si.sh_frame = mi.Frame3f(n)
+            csg_si.dp_du, csg_si.dp_dv = csg_si.sh_frame.s, csg_si.sh_frame.t
+            csg_si.wi = csg_si.to_local(-ray.d)
+            csg_si.prim_index = prim
+            csg_si.shape = mi.ShapePtr(shape)
+            csg_si.time = ray.time
+            csg_si.wavelengths = ray.wavelengths
+            si = dr.select(closer, csg_si, si)
+            bsdf = dr.select(closer, shape.prim_bsdf(prim, closer), bsdf)
+            csg_hit |= closer
+            csg_prim = dr.select(closer, prim, csg_prim)
+            csg_shape = dr.select(closer, mi.UInt32(k), csg_shape)
+        return si, bsdf, csg_hit, csg_prim, csg_shape
+
+    def occluded(self, scene: mi.Scene, ray: mi.Ray3f, active):
+        """Shadow test of `ray` (up to ray.maxt) against Mitsuba's shapes and the CSG shapes."""
+        blocked = scene.ray_test(ray, active) if self.has_others else mi.Bool(False)
+        for shape in self.csg:
+            hits = trace_rays(shape.prepared, ray.o, ray.d, 0.0, dr.detach(ray.maxt))
+            blocked |= active & mi.Bool(dr.isfinite(hits.t))
+        return blocked
+
+
+def mis_weight(pdf_a, pdf_b):
+    """Power heuristic (exponent 2), 0 where both pdfs are 0."""
+    a2 = dr.square(pdf_a)
+    return dr.detach(dr.select(pdf_a > 0, a2 / (a2 + dr.square(pdf_b)), 0))
+
+
+def read_depths(props, name: str):
+    max_depth = props.get("max_depth", 6)
+    if max_depth < 0 and max_depth != -1:
+        raise ValueError(f"{name}: \"max_depth\" must be set to -1 (infinite) or a value >= 0")
+    rr_depth = props.get("rr_depth", 5)
+    if rr_depth <= 0:
+        raise ValueError(f"{name}: \"rr_depth\" must be set to a value greater than zero!")
+    return (2**32 - 1 if max_depth == -1 else max_depth), rr_depth

@@ -1,0 +1,119 @@
+"""The `csg` shape: a CSG model in a Mitsuba scene."""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mitsuba_csg import models as model_refs
+from mitsuba_csg.errors import CSGError
+from mitsuba_csg.tracing import prepare
+
+
+class CSGShape(mi.Mesh):
+    r"""
+    .. _shape-csg:
+
+    CSG model (:monosp:`csg`)
+    -------------------------
+
+    .. pluginparameters::
+
+     * - filename
+       - |string|
+       - A model file in a format `mitsuba_csg.load` knows (by extension, e.g. `.json`).
+     * - model
+       - |string|
+       - Instead of `filename`: a model registered with `mitsuba_csg.model_ref(model)`, or the
+         text of a native JSON model.
+     * - optimize
+       - |bool|
+       - Optimize the tree (paper §4) before tracing. (Default: true)
+     * - to_world
+       - |transform|
+       - Placement of the model in the scene. (Default: none)
+     * - (Nested plugin)
+       - |bsdf|
+       - The default BSDF. BSDFs with an `id` equal to a material name used by the model are
+         used for the primitives of that material. (Default: diffuse)
+
+    An exact CSG solid, traced analytically by the `csg_*` integrators: the ordinary Mitsuba
+    integrators do not see it (it is a proxy mesh with one degenerate triangle spanning the
+    model's bounding box, which keeps scene bounds right). It cannot be an area emitter.
+
+    .. code-block:: python
+
+        import mitsuba_csg as csg
+        m = csg.Box(2.0) - csg.Sphere(1.2)
+        shape = {'type': 'csg', 'model': csg.model_ref(m),
+                 'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': [0.8, 0.6, 0.2]}}}
+    """
+
+    def __init__(self, props: mi.Properties):
+        model, source = _model_from(props)
+        optimize = props.get("optimize", True)
+        to_world = props.get("to_world", mi.ScalarTransform4f())
+        # BSDF children: the default one plus one per material name; Mesh only takes one.
+        bsdfs = {}
+        for name in list(props.keys()):
+            value = props[name]
+            if isinstance(value, mi.BSDF):
+                bsdfs[value.id() or name] = value
+                props.remove_property(name)
+        for key in ("filename", "model", "optimize", "to_world"):
+            if props.has_property(key):
+                props.remove_property(key)
+        matrix = np.array(to_world.matrix, dtype=np.float64).reshape(4, 4)
+        if not np.allclose(matrix, np.eye(4)):
+            model = model.transform(matrix)
+        self.model = model
+        self.source = source
+        self.optimize = bool(optimize)
+        self.prepared = prepare(model, optimize=self.optimize)
+        lower, upper = self.prepared.flat.node_lower[0], self.prepared.flat.node_upper[0]
+        super().__init__(f"csg:{source}", 2, 1, props)
+        params = mi.traverse(self)
+        params["vertex_positions"] = mi.Float(np.concatenate([lower, upper]).astype(np.float32))
+        params["faces"] = mi.UInt32([0, 0, 0])
+        self.add_attribute("face_csgproxy", 1, [0.0])   # keeps the loader from merging proxies
+        params.update()
+        self._setup_materials(bsdfs)
+
+    def _setup_materials(self, bsdfs: dict):
+        names = self.prepared.flat.prim_material
+        default = None
+        for key, bsdf in bsdfs.items():
+            if key not in set(n for n in names if n):
+                default = default or bsdf
+        if default is None:
+            default = mi.load_dict({"type": "diffuse"})
+        self.set_bsdf(default)
+        table = [default]
+        index = {}
+        for name in sorted(set(n for n in names if n)):
+            index[name] = len(table)
+            table.append(bsdfs.get(name, default))
+        self.bsdf_table = table
+        self.prim_bsdf_index = mi.UInt32(np.array([index.get(n, 0) for n in names], dtype=np.uint32))
+        self.bsdf_ptrs = mi.BSDFPtr(table)
+
+    def prim_bsdf(self, prim, active):
+        """The BSDF of each hit primitive (a BSDFPtr array)."""
+        idx = dr.gather(mi.UInt32, self.prim_bsdf_index, prim, active)
+        return dr.gather(mi.BSDFPtr, self.bsdf_ptrs, idx, active)
+
+    def to_string(self):
+        flat = self.prepared.flat
+        return (f"CSGShape[source={self.source!r}, primitives={flat.num_prims}, nodes={flat.num_nodes}, "
+                f"height={flat.height}, optimize={self.optimize}]")
+
+
+def _model_from(props):
+    if props.has_property("filename") == props.has_property("model"):
+        raise CSGError("csg shape: give exactly one of 'filename' or 'model'")
+    if props.has_property("filename"):
+        from mitsuba_csg import load
+        path = str(props["filename"])
+        resolved = mi.Thread.thread().file_resolver().resolve(path)
+        return load(str(resolved)), path
+    return model_refs.resolve(str(props["model"])), "inline model"
