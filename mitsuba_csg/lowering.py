@@ -15,7 +15,7 @@ Node ids are preorder, so every parent has a smaller id than its children.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -51,6 +51,7 @@ class FlatTree:
     prim_upper: np.ndarray
     prim_material: list = field(default_factory=list)  # material name or None per primitive
     planes: np.ndarray = None   # (Q, 4) canonical unit-normal planes of convex primitives
+    plane_vertices: dict = field(default_factory=dict)  # plane start -> canonical vertices
     root: int = 0
 
     @property
@@ -170,7 +171,8 @@ def _new_node(kind, negative, left, right, parent, k, neg, par, side) -> int:
 
 # ---- Step 4: primitive arrays and bounds ----
 
-def _primitive_arrays(prims):
+def primitive_tree(prims) -> FlatTree:
+    """A FlatTree with the primitive arrays of `prims` (from `_items`) and no nodes yet."""
     n = len(prims)
     shape = np.empty(n, np.int64)
     to_world = np.empty((n, 4, 4))
@@ -195,12 +197,26 @@ def _primitive_arrays(prims):
             plane_start[i] = plane_sets[key][0]
             plane_count[i] = len(planes)
     planes = np.vstack(plane_chunks) if plane_chunks else np.zeros((0, 4))
+    vertices = dict(plane_sets.values())
     to_canonical = np.linalg.inv(to_world)[:, :3, :]
-    lower, upper = _primitive_bounds(shape, to_world, param, plane_start, plane_sets)
-    return shape, to_canonical, to_world, param, plane_start, plane_count, planes, lower, upper, materials
+    lower, upper = primitive_bounds(shape, to_world, param, plane_start, vertices)
+    return FlatTree(*_no_nodes(), shape, to_canonical, to_world, param, plane_start, plane_count, lower, upper,
+                    materials, planes=planes, plane_vertices=vertices)
 
 
-def _primitive_bounds(shape, to_world, param, plane_start, plane_sets):
+def _no_nodes():
+    empty = np.zeros(0, np.int64)
+    return empty, np.zeros(0, bool), empty, empty, empty, np.zeros((0, 3)), np.zeros((0, 3)), empty
+
+
+def with_nodes(prims: FlatTree, kind, negative, left, right, parent) -> FlatTree:
+    """`prims`'s primitive arrays with the given binary tree (preorder, root 0), bounds computed."""
+    lower_, upper_, height, negative = _node_bounds(kind, negative, left, right, prims.prim_lower, prims.prim_upper)
+    return replace(prims, node_kind=kind, node_negative=negative, node_left=left, node_right=right,
+                   node_parent=parent, node_lower=lower_, node_upper=upper_, node_height=height, root=0)
+
+
+def primitive_bounds(shape, to_world, param, plane_start, plane_vertices):
     """Exact world boxes: support functions of the canonical shapes under each affine map."""
     A, c = to_world[:, :3, :3], to_world[:, :3, 3]
     half = np.zeros_like(c)
@@ -221,7 +237,7 @@ def _primitive_bounds(shape, to_world, param, plane_start, plane_sets):
     bottom_h, top_h = param[m, 0:1] * disc[m], param[m, 1:2] * disc[m]
     lower[m] = np.minimum(bottom_c - bottom_h, top_c - top_h)
     upper[m] = np.maximum(bottom_c + bottom_h, top_c + top_h)
-    for start, verts in plane_sets.values():
+    for start, verts in plane_vertices.items():
         m = (shape == P.CONVEX) & (plane_start == start)
         world = np.einsum("nij,vj->nvi", A[m], verts) + c[m][:, None, :]
         lower[m], upper[m] = world.min(axis=1), world.max(axis=1)
@@ -276,16 +292,6 @@ def _node_bounds(kind, negative, left, right, prim_lower, prim_upper):
     return lower, upper, height, negative
 
 
-def primitive_tree(prims) -> FlatTree:
-    """A FlatTree with the primitive arrays of `prims` (from `_items`) and no nodes yet."""
-    (shape, to_canonical, to_world, param, plane_start, plane_count, planes,
-     p_lower, p_upper, materials) = _primitive_arrays(prims)
-    empty = np.zeros(0, np.int64)
-    return FlatTree(empty, np.zeros(0, bool), empty, empty, empty, np.zeros((0, 3)), np.zeros((0, 3)), empty,
-                    shape, to_canonical, to_world, param, plane_start, plane_count, p_lower, p_upper,
-                    materials, planes, 0)
-
-
 def lowered_height(root_item) -> int:
     """Height of the binary tree `lower` emits for an item tree (general form)."""
     def balanced(hs, lo, hi):
@@ -320,10 +326,4 @@ def lower(model: Node, positive: bool = False) -> FlatTree:
     """Flatten `model` into a FlatTree; `positive=True` gives the positive form."""
     prims: list = []
     root_item = _items(model, prims)
-    kind, negative, left, right, parent = _emit(root_item, positive)
-    (shape, to_canonical, to_world, param, plane_start, plane_count, planes,
-     p_lower, p_upper, materials) = _primitive_arrays(prims)
-    lower_, upper_, height, negative = _node_bounds(kind, negative, left, right, p_lower, p_upper)
-    return FlatTree(kind, negative, left, right, parent, lower_, upper_, height,
-                    shape, to_canonical, to_world, param, plane_start, plane_count, p_lower, p_upper,
-                    materials, planes, 0)
+    return with_nodes(primitive_tree(prims), *_emit(root_item, positive))

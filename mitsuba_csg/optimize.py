@@ -364,13 +364,9 @@ def _to_flat(t: _Tree, root: int, base: L.FlatTree) -> L.FlatTree:
         else:
             stack.append((t.right[j], nid, 1))
             stack.append((t.left[j], nid, 0))
-    kind, neg = np.array(kind, np.int64), np.array(neg, bool)
-    left, right, parent = np.array(left, np.int64), np.array(right, np.int64), np.array(parent, np.int64)
-    lower, upper, height, neg = L._node_bounds(kind, neg, left, right, base.prim_lower, base.prim_upper)
-    return L.FlatTree(kind, neg, left, right, parent, lower, upper, height,
-                      base.prim_shape, base.prim_to_canonical, base.prim_to_world, base.prim_param,
-                      base.prim_plane_start, base.prim_plane_count, base.prim_lower, base.prim_upper,
-                      base.prim_material, base.planes, 0)
+    arrays = (np.array(kind, np.int64), np.array(neg, bool), np.array(left, np.int64),
+              np.array(right, np.int64), np.array(parent, np.int64))
+    return L.with_nodes(base, *arrays)
 
 
 def optimize(model, *, spatial: bool = True, minimize_height: bool = True, general_form: bool = True,
