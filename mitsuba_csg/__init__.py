@@ -15,6 +15,7 @@ from .primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, To
 from .optimize import OptimizedModel, optimize  # noqa: E402
 from .tracing import Hits, IterationLimitWarning, Prepared, contains, prepare, trace, trace_rays  # noqa: E402
 from .models import model_ref  # noqa: E402
+from .io import load, save  # noqa: E402
 
 
 def _register_plugins() -> None:
@@ -41,5 +42,5 @@ def to_mesh(model, segments: int = 64):
 __all__ = [
     "Box", "CSGError", "Cone", "ConvexPolyhedron", "Cylinder", "Hits", "IterationLimitWarning", "ModelError",
     "Node", "Operation", "OptimizedModel", "Prepared", "Primitive", "Prism", "Sphere", "Torus", "TreeTooDeepError",
-    "contains", "difference", "model_ref", "intersection", "optimize", "prepare", "to_mesh", "trace", "trace_rays", "union",
+    "contains", "difference", "load", "model_ref", "save", "intersection", "optimize", "prepare", "to_mesh", "trace", "trace_rays", "union",
 ]

@@ -31,12 +31,6 @@ def resolve(text: str):
             raise CSGError(f"csg shape: {text!r} names no model registered in this process (use csg.model_ref)")
         return _registry[text]
     if text.lstrip().startswith("{"):
-        import json
-
         from . import native
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise CSGError(f"csg shape: 'model' is not valid JSON ({e})") from None
-        return native.from_dict(data, source="<model property>")
+        return native.loads(text, source="<model property>")
     raise CSGError("csg shape: 'model' must come from csg.model_ref(model) or be native JSON text")

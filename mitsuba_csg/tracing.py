@@ -69,6 +69,7 @@ class RayHits:
     entering: object   # Bool: the ray enters the solid at the hit
     finished: object   # Bool: False where the iteration bound stopped the lane
     steps: object      # UInt32: automaton iterations per lane
+    info: object = None  # UInt32: class, flip bit and face of the hit (see kernel.py)
 
 
 def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf")) -> RayHits:
@@ -85,7 +86,7 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf")) -> RayHits
     normal = hit_normal(tree, prim, info, o, d, dr.select(hit, t, 0.0), hit)
     t = dr.select(finished, t, dr.nan)
     return RayHits(t=t, normal=normal, prim=dr.select(hit, prim, NO_LEAF),
-                   entering=hit & ((info & 3) == X.ENTER), finished=finished, steps=steps)
+                   entering=hit & ((info & 3) == X.ENTER), finished=finished, steps=steps, info=info)
 
 
 def hit_normal(tree: KernelTree, prim, info, o, d, t, active):

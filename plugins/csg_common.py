@@ -4,6 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_csg.attached import attached_hit
 from mitsuba_csg.tracing import trace_rays
 
 from .csg_shape import CSGShape
@@ -19,11 +20,13 @@ class SceneCSG:
         # Embree costs tens of ms per frame even for tiny scenes: skip it if all is CSG.
         self.has_others = len(self.csg) < len(shapes)
 
-    def intersect(self, scene: mi.Scene, ray: mi.Ray3f, active):
+    def intersect(self, scene: mi.Scene, ray: mi.Ray3f, active, attached: bool = False):
         """Nearest surface interaction over Mitsuba's shapes and the CSG shapes.
 
         Returns (si, bsdf, csg_hit, csg_prim, csg_shape): the BSDF pointer per lane (per
         primitive material on CSG hits), whether the hit is on a CSG shape, and which.
+        With `attached`, CSG hits carry derivatives of t, p and n with respect to the
+        shapes' `primitive_to_world` (call it inside `dr.resume_grad`).
         """
         if self.has_others:
             si = scene.ray_intersect(ray, mi.RayFlags.All, coherent=False, active=active)
@@ -42,9 +45,14 @@ class SceneCSG:
             t = mi.Float(hits.t)
             n = mi.Normal3f(hits.normal)
             prim = mi.UInt32(hits.prim)
+            p = ray(t)
+            if attached:
+                t, p, n = attached_hit(shape.primitive_to_world, shape.prepared.tree, prim, mi.UInt32(hits.info),
+                                       dr.select(closer, t, 0.0), ray.o, ray.d, closer)
+                t, p, n = mi.Float(t), mi.Point3f(p), mi.Normal3f(n)
             csg_si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray.d))
             csg_si.t = t
-            csg_si.p = ray(t)
+            csg_si.p = p
             csg_si.n = n
             csg_si.sh_frame = mi.Frame3f(n)
             csg_si.dp_du, csg_si.dp_dv = csg_si.sh_frame.s, csg_si.sh_frame.t

@@ -5,9 +5,12 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mitsuba_csg import lowering
 from mitsuba_csg import models as model_refs
 from mitsuba_csg.errors import CSGError
-from mitsuba_csg.tracing import prepare
+from mitsuba_csg.kernel import upload
+from mitsuba_csg.optimize import OptimizedModel
+from mitsuba_csg.tracing import Prepared, prepare
 
 
 class CSGShape(mi.Mesh):
@@ -41,6 +44,14 @@ class CSGShape(mi.Mesh):
     integrators do not see it (it is a proxy mesh with one degenerate triangle spanning the
     model's bounding box, which keeps scene bounds right). It cannot be an area emitter.
 
+    `mi.traverse` exposes `primitive_to_world` (differentiable): 12 floats per primitive,
+    in `model.leaves()` order, the rows of the 3x4 matrix that maps the primitive's
+    canonical solid to world space. Its last column is the primitive's centre; its linear
+    part holds the sizes: a `Sphere(r)` has `r * R` (R a rotation), a `Box(size)` has
+    `R * diag(size) / 2`, a `Cylinder(r, h)` has `R * diag(r, r, h / 2)`. After
+    `params.update()` the tree's boxes and kernel arrays are re-derived (the tree itself is
+    kept). `csg_prb` differentiates through it.
+
     .. code-block:: python
 
         import mitsuba_csg as csg
@@ -64,20 +75,58 @@ class CSGShape(mi.Mesh):
             if props.has_property(key):
                 props.remove_property(key)
         matrix = np.array(to_world.matrix, dtype=np.float64).reshape(4, 4)
+        if isinstance(model, OptimizedModel):
+            model = model.source
         if not np.allclose(matrix, np.eye(4)):
             model = model.transform(matrix)
         self.model = model
         self.source = source
         self.optimize = bool(optimize)
         self.prepared = prepare(model, optimize=self.optimize)
-        lower, upper = self.prepared.flat.node_lower[0], self.prepared.flat.node_upper[0]
+        flat = self.prepared.flat
+        self.primitive_to_world = mi.Float(flat.prim_to_world[:, :3, :].astype(np.float32).ravel())
         super().__init__(f"csg:{source}", 2, 1, props)
+        self._setup_materials(bsdfs)
+        self._update_proxy_bounds()
+        self.add_attribute("face_csgproxy", 1, [0.0])   # keeps the loader from merging proxies
+
+    def _update_proxy_bounds(self):
+        flat = self.prepared.flat
+        lower, upper = flat.node_lower[flat.root], flat.node_upper[flat.root]
         params = mi.traverse(self)
         params["vertex_positions"] = mi.Float(np.concatenate([lower, upper]).astype(np.float32))
         params["faces"] = mi.UInt32([0, 0, 0])
-        self.add_attribute("face_csgproxy", 1, [0.0])   # keeps the loader from merging proxies
         params.update()
-        self._setup_materials(bsdfs)
+
+    def traverse(self, callback):
+        super().traverse(callback)
+        callback.put("primitive_to_world", self.primitive_to_world, mi.ParamFlags.Differentiable)
+        for name, bsdf in self.material_bsdfs.items():
+            callback.put(f"material_{name}", bsdf, mi.ParamFlags.Differentiable)
+
+    def parameters_changed(self, keys):
+        if "primitive_to_world" in keys:
+            rows = np.array(dr.detach(self.primitive_to_world), dtype=np.float64).reshape(-1, 3, 4)
+            flat = self.prepared.flat
+            if len(rows) != flat.num_prims:
+                raise CSGError(f"csg shape: primitive_to_world needs {12 * flat.num_prims} values, got {12 * len(rows)}")
+            to_world = flat.prim_to_world.copy()
+            to_world[:, :3, :] = rows
+            dets = np.linalg.det(to_world[:, :3, :3])
+            if not np.all(np.isfinite(rows)) or np.any(np.abs(dets) < 1e-30):
+                raise CSGError("csg shape: primitive_to_world has NaN or singular matrices")
+            lower, upper = lowering.primitive_bounds(flat.prim_shape, to_world, flat.prim_param,
+                                                     flat.prim_plane_start, flat.plane_vertices)
+            prims = lowering.replace(flat, prim_to_world=to_world,
+                                     prim_to_canonical=np.linalg.inv(to_world)[:, :3, :],
+                                     prim_lower=lower, prim_upper=upper)
+            flat = lowering.with_nodes(prims, flat.node_kind, flat.node_negative, flat.node_left,
+                                       flat.node_right, flat.node_parent)
+            self.prepared = Prepared(flat, upload(flat, self.prepared.tree.b))
+            super().parameters_changed([])
+            self._update_proxy_bounds()
+        else:
+            super().parameters_changed(keys)
 
     def _setup_materials(self, bsdfs: dict):
         names = self.prepared.flat.prim_material
@@ -94,6 +143,7 @@ class CSGShape(mi.Mesh):
             index[name] = len(table)
             table.append(bsdfs.get(name, default))
         self.bsdf_table = table
+        self.material_bsdfs = {n: bsdfs[n] for n in index if n in bsdfs}
         self.prim_bsdf_index = mi.UInt32(np.array([index.get(n, 0) for n in names], dtype=np.uint32))
         self.bsdf_ptrs = mi.BSDFPtr(table)
 

@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 
 import mitsuba as mi
 
@@ -50,6 +50,7 @@ RAY_JITTER = 1e-3         # sideways ray displacement for the stability test, x 
 T_JUMP = 8.0              # a t change beyond T_JUMP x jitter under that displacement is an edge
                           # (a smooth surface at |cos| >= 0.2 moves by at most 4.9 x jitter)
 NORMAL_DOT = 0.9          # mesh facet normal vs kernel normal (facets tilt by ~2 pi / segments)
+CREASE_DOT = 0.98         # sideways rays whose normals differ more than this straddle a crease
 MIN_COMPARED = 0.7        # fraction of rays that must be compared
 POINT_CLEARANCE = 1e-2    # points compared for membership lie this far (x model size) from the surface
 MIN_POINTS = 0.5          # fraction of points that must be compared
@@ -83,6 +84,29 @@ ROUND = (csg.Sphere, csg.Cone, csg.Torus)   # Cylinder is a Cone; Box, Prism, po
 
 # ---- Reference: the mesh in a Mitsuba scene ----
 
+def _solid_shells(mesh):
+    """(vertices, triangles, volume) of `mesh` without zero-volume debris shells.
+
+    manifold3d can leave flat, zero-volume shells where exactly coincident surfaces cancel
+    (e.g. `difference(cone, torus, cone)` at 256 segments leaves six flat tetrahedra of area
+    ~0.03 each). They enclose nothing, but a ray cast would hit them; we drop every
+    connected shell whose |volume| is below 1e-6 x area^1.5 (a real solid has ~0.09 x area^1.5;
+    void shells have negative volume and are kept).
+    """
+    parts = mesh.decompose() if mesh.num_tri() else []
+    keep = [p for p in parts if abs(p.volume()) > 1e-6 * p.surface_area() ** 1.5]
+    if len(keep) == len(parts):
+        verts, faces = mesh_arrays(mesh)
+        return verts, faces, mesh.volume()
+    verts, faces, offset = [np.zeros((0, 3))], [np.zeros((0, 3), np.int64)], 0
+    for part in keep:
+        v, f = mesh_arrays(part)
+        verts.append(v)
+        faces.append(f + offset)
+        offset += len(v)
+    return np.concatenate(verts), np.concatenate(faces), sum(p.volume() for p in keep)
+
+
 class MeshReference:
     """A model, its manifold3d mesh, and that mesh in a Mitsuba scene."""
 
@@ -90,7 +114,7 @@ class MeshReference:
         self.model = model
         self.segments = segments
         self.mesh = csg.to_mesh(model, segments=segments)
-        verts, faces = mesh_arrays(self.mesh)
+        verts, faces, self.volume = _solid_shells(self.mesh)
         shapes = {"type": "scene"}
         if len(faces):
             shape = mi.Mesh("reference", len(verts), len(faces))
@@ -149,6 +173,66 @@ class MeshReference:
         return votes >= 2
 
 
+# ---- Models the mesh cannot stand in for ----
+
+def _same_leaf(a, b) -> bool:
+    """Exactly the same primitive in the same place: manifold3d builds identical meshes."""
+    if a.shape != b.shape or not np.array_equal(a.matrix, b.matrix):
+        return False
+    (ca, pa, qa), (cb, pb, qb) = a.canonical(), b.canonical()
+    if not (np.array_equal(ca, cb) and tuple(pa) == tuple(pb)):
+        return False
+    return (qa is None and qb is None) or (qa is not None and qb is not None and np.array_equal(qa, qb))
+
+
+def shared_surfaces(model, samples: int = 300) -> bool:
+    """Whether two (not identical) primitives of `model` share a piece of surface, exactly or
+    within ~1e-5 of the model size.
+
+    Regularized CSG cancels a shared surface (`Cylinder(r, h) - Cylinder(r, h).rotate("z", 10)`
+    is empty), but two tessellations out of phase leave slivers between their inscribed
+    polygons, and manifold3d keeps in float64 slabs far thinner than the kernel's float32 can
+    resolve (hypothesis draws two octahedra whose planes differ in the 7th digit): the mesh is no
+    reference there. Identical primitives (hypothesis draws many) mesh identically and are fine.
+    Detection: points on each leaf's surface (kernel hits on the leaf alone) stepped by +-1e-5
+    of its size along the normal; if another leaf's membership differs between the two for
+    more than 1 % of them, its surface passes between. Surfaces that merely cross do so for a
+    fraction ~1e-5. Coplanar faces that manifold3d would handle exactly are flagged too; that
+    only costs an example.
+    """
+    leaves = model.leaves()
+    pairs = [(i, j) for i in range(len(leaves)) for j in range(len(leaves))
+             if i != j and not _same_leaf(leaves[i], leaves[j])]
+    if not pairs:
+        return False
+    points = {}
+    for i in sorted({i for i, _ in pairs}):
+        lo, hi = leaves[i].bounds()
+        size = float(np.max(hi - lo))
+        rng = np.random.default_rng(i)
+        o = rng.normal(size=(samples, 3))
+        o = 0.5 * (lo + hi) + o * (2.0 * size / np.linalg.norm(o, axis=1, keepdims=True))
+        d = rng.uniform(lo, hi, size=(samples, 3)) - o
+        hits = csg.trace(leaves[i], o, d)
+        hit = np.isfinite(hits.t)
+        p = o[hit] + hits.t[hit, None].astype(np.float64) * d[hit]
+        step = 1e-5 * size * hits.normal[hit].astype(np.float64)
+        points[i] = np.concatenate([p + step, p - step])
+    for j in sorted({j for _, j in pairs}):
+        sources = [i for i, jj in pairs if jj == j and len(points[i])]
+        if not sources:
+            continue
+        flags = csg.contains(leaves[j], np.concatenate([points[i] for i in sources]))
+        offset = 0
+        for i in sources:
+            half = len(points[i]) // 2
+            outer, inner = flags[offset:offset + half], flags[offset + half:offset + 2 * half]
+            offset += 2 * half
+            if np.mean(outer != inner) > 0.01:
+                return True
+    return False
+
+
 # ---- Rays ----
 
 def make_rays(ref: MeshReference, seed: int, n: int):
@@ -200,13 +284,14 @@ def ray_mismatches(model, ref: MeshReference, o, d, scales=None):
     compared = stable | np.isnan(t_k)                                      # NaN: iteration bound hit
 
     hit_k, hit_m = np.isfinite(t_k), np.isfinite(t_m)
-    cos = np.maximum(np.abs(np.einsum("ij,ij->i", n_k, d)), GRAZING_COS)
+    # Near a crease (a CSG edge or a primitive's own edge, where the sideways rays see another
+    # normal) the mesh may show the neighbouring face within the gap: there the distance
+    # tolerance uses the smallest |cos| of the five rays, and normals are not compared.
+    cos = np.maximum(np.min(cos_all, axis=0), GRAZING_COS)
     with np.errstate(invalid="ignore"):
+        crease = np.any(np.einsum("kij,ij->ki", n_all, n_k) < CREASE_DOT, axis=0)
         t_bad = hit_k & hit_m & (np.abs(t_k - t_m) > ref.tessellation_error / cos)
-        # Near a crease (the sideways rays hit other primitives) the mesh may show the
-        # neighbouring face within the gap; compare normals only away from creases.
-        same_prim = np.all(hits.prim.reshape(5, n) == hits.prim[:n], axis=0)
-        n_bad = hit_k & hit_m & same_prim & (np.einsum("ij,ij->i", n_k, n_m) < NORMAL_DOT)
+        n_bad = hit_k & hit_m & ~crease & (np.einsum("ij,ij->i", n_k, n_m) < NORMAL_DOT)
     bad = compared & (np.isnan(t_k) | (hit_k != hit_m) | t_bad | n_bad)
 
     lines = []
@@ -278,7 +363,7 @@ def check_volume(model, ref: MeshReference, seed: int, n: int = 200_000):
     stderr = box_volume * math.sqrt(max(frac * (1.0 - frac), 1.0 / n) / n)
     deficit = (2.0 * math.pi / ref.segments) ** 2 / 6.0
     bias = 2.0 * deficit * sum(csg.to_mesh(leaf, segments=ref.segments).volume() for leaf in ref.round_leaves)
-    volume = ref.mesh.volume()
+    volume = ref.volume
     assert abs(estimate - volume) <= 4.5 * stderr + bias, (
         f"Monte Carlo volume {estimate:.5f} +- {stderr:.5f} vs mesh {volume:.5f} (bias allowance {bias:.5f})"
         f"\nmodel: {model!r}")
@@ -311,6 +396,7 @@ def test_fixed_models_volume(fixed):
 @settings(max_examples=15)
 @given(models(max_leaves=6), seeds())
 def test_random_models(model, seed):
+    assume(not shared_surfaces(model))
     ref = MeshReference(model, SEGMENTS)
     check_rays(model, ref, seed, n=200)
     check_membership(model, ref, seed, n=600)

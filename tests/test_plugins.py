@@ -1,0 +1,270 @@
+"""The Mitsuba plugins against Mitsuba's own integrators on manifold3d meshes of the same model."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mitsuba_csg as csg
+from mitsuba_csg.mesh import save_mesh
+
+ROOT = Path(__file__).resolve().parents[1]
+LOOK = mi.ScalarTransform4f().look_at([4, -6, 3], [0, 0, 0], [0, 0, 1])
+MODEL = csg.Box(2.0) - csg.Sphere(1.25) | csg.Torus(0.8, 0.2).translate((0, 0, 1.4))
+
+
+def scene_dict(shape: dict, integrator: dict, width=48, height=32, spp=64, extra=None):
+    d = {
+        "type": "scene",
+        "integrator": integrator,
+        "sensor": {"type": "perspective", "fov": 40, "to_world": LOOK,
+                   "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "object": shape,
+        "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -1]).scale(6)},
+        "sky": {"type": "constant", "radiance": 0.3},
+        "sun": {"type": "directional", "direction": [-1, 1.5, -2], "irradiance": 2.5},
+        "lamp": {"type": "point", "position": [2, -3, 4], "intensity": 20.0},
+    }
+    d.update(extra or {})
+    return d
+
+
+BSDF = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.6, 0.2]}}
+
+
+def csg_shape(model, **kw):
+    return {"type": "csg", "model": csg.model_ref(model), "bsdf": BSDF, **kw}
+
+
+def mesh_shape(model, tmp_path, name="mesh.ply"):
+    path = tmp_path / name
+    save_mesh(csg.to_mesh(model, segments=256), path)
+    return {"type": "ply", "filename": str(path), "face_normals": True, "bsdf": BSDF}
+
+
+def render(d, seed=0, spp=None):
+    return np.array(mi.render(mi.load_dict(d), seed=seed, spp=spp or 0))
+
+
+def rel_mse(a, b):
+    return float(np.mean((a - b) ** 2) / np.mean(b ** 2))
+
+
+def test_scalar_variants_are_refused():
+    code = "import mitsuba as mi; mi.set_variant('scalar_rgb'); import mitsuba_csg"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode != 0
+    assert "JIT variant" in run.stderr and "llvm_ad_rgb" in run.stderr
+
+
+def test_csg_path_matches_path_on_the_mesh(tmp_path):
+    """Metric: relative MSE = mean((a - b)^2) / mean(b^2) at equal spp. Two mesh renders with
+    different seeds set the noise floor; the CSG render must be within 1.5x of it (plus the
+    tessellation bias), and a slightly different model must not."""
+    integrator = {"type": "csg_path", "max_depth": 4}
+    reference = {"type": "path", "max_depth": 4}
+    spp = 256
+    mesh_a = render(scene_dict(mesh_shape(MODEL, tmp_path), reference, spp=spp), seed=1)
+    mesh_b = render(scene_dict(mesh_shape(MODEL, tmp_path), reference, spp=spp), seed=2)
+    noise = rel_mse(mesh_a, mesh_b)
+    threshold = 1.5 * noise + 1e-4
+    ours = rel_mse(render(scene_dict(csg_shape(MODEL), integrator, spp=spp), seed=3), mesh_a)
+    assert ours < threshold, (ours, noise)
+    changed = csg.Box(2.0) - csg.Sphere(1.32) | csg.Torus(0.8, 0.2).translate((0, 0, 1.4))
+    theirs = rel_mse(render(scene_dict(csg_shape(changed), integrator, spp=spp), seed=3), mesh_a)
+    assert theirs > 2 * threshold, (theirs, noise)
+
+
+def _silhouette_free(depth, tol=0.05):
+    """Pixels whose 3x3 neighbourhood is all hit and has no depth jump (not within a pixel of an edge)."""
+    hit = depth > 0
+    ok = hit.copy()
+    h, w = depth.shape
+    pad = np.pad(depth, 1, mode="edge")
+    padhit = np.pad(hit, 1, mode="constant")
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            nb = pad[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+            ok &= padhit[1 + dy:1 + dy + h, 1 + dx:1 + dx + w] & (np.abs(nb - depth) < tol * depth)
+    return ok
+
+
+def test_aov_depth_matches_mitsuba_depth(tmp_path):
+    aov = render(scene_dict(csg_shape(MODEL), {"type": "csg_aov", "aovs": "dd:depth,prim:prim_index"},
+                            width=64, height=48, spp=1), seed=5)
+    ref = render(scene_dict(mesh_shape(MODEL, tmp_path), {"type": "depth"}, width=64, height=48, spp=1), seed=5)
+    ours, theirs = aov[..., 3], ref[..., 0]
+    ok = _silhouette_free(ours) & _silhouette_free(theirs)
+    assert ok.mean() > 0.3
+    np.testing.assert_allclose(ours[ok], theirs[ok], rtol=2e-3)
+    # hit / miss agree everywhere except within a pixel of a silhouette
+    near_edge = ~(_silhouette_free(ours, tol=np.inf) | (ours == 0) & _silhouette_free(-np.ones_like(ours) * (theirs == 0)))
+    assert np.mean((ours > 0) != (theirs > 0)) < 0.05
+    del near_edge
+
+
+def test_scene_file_loads_and_renders(tmp_path):
+    scene = mi.load_file(str(ROOT / "scenes" / "cheese.xml"), spp=4, width=64, height=36)
+    image = mi.render(scene)
+    out = tmp_path / "cheese.exr"
+    mi.Bitmap(image).write(str(out))
+    back = np.array(mi.Bitmap(str(out)))
+    assert back.shape == (36, 64, 3)
+    assert np.isfinite(back).all() and back.mean() > 0.05
+    cheese = [s for s in scene.shapes() if "CSGShape" in str(s)]
+    assert len(cheese) == 1 and "primitives=501" in str(cheese[0])
+
+
+def test_materials_per_primitive():
+    red = {"type": "diffuse", "id": "red", "reflectance": {"type": "rgb", "value": [0.9, 0.05, 0.05]}}
+    blue = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.05, 0.05, 0.9]}}
+    model = csg.Sphere(1.0).translate((-1.2, 0, 0)).with_material("red") | csg.Sphere(1.0).translate((1.2, 0, 0))
+    shape = {"type": "csg", "model": csg.model_ref(model), "default": blue, "red": red}
+    d = scene_dict(shape, {"type": "csg_aov", "aovs": "prim:prim_index,dd:depth",
+                           "color": {"type": "csg_path", "max_depth": 2}}, width=64, height=32, spp=16)
+    del d["floor"]
+    image = render(d)
+    prim, hit = image[..., 3], _silhouette_free(image[..., 4], tol=np.inf)
+    rgb = image[..., :3]
+    left = hit & (prim < 0.01)        # hits on primitive 0 (red)
+    right = hit & (prim > 0.99)       # hits on primitive 1 (default: blue)
+    assert left.sum() > 20 and right.sum() > 20
+    assert np.all(rgb[left][:, 0] > rgb[left][:, 2])
+    assert np.all(rgb[right][:, 2] > rgb[right][:, 0])
+
+
+def test_several_csg_shapes_with_to_world_and_mixed_meshes(tmp_path):
+    a = csg.Sphere(0.8) - csg.Box(0.8).translate((0.6, 0, 0))
+    shapes = {"first": csg_shape(a, to_world=mi.ScalarTransform4f().translate([-1.5, 0, 0])),
+              "second": csg_shape(a, to_world=mi.ScalarTransform4f().translate([1.5, 0, 0]).rotate([0, 0, 1], 90))}
+    d = scene_dict(shapes.pop("first"), {"type": "csg_aov", "aovs": "dd:depth,s:shape_index"},
+                   width=64, height=32, spp=1, extra=shapes)
+    image = render(d, seed=1)
+    scene = mi.load_dict(d)
+    names = [str(s).split("[")[0] for s in scene.shapes()]
+    shape_index = image[..., 4]
+    hit = image[..., 3] > 0
+    seen = set(np.unique(np.round(shape_index[hit])).astype(int))
+    csg_ids = {i for i, n in enumerate(names) if n == "CSGShape"}
+    assert csg_ids <= seen                       # both CSG shapes visible
+    assert len(seen - csg_ids) >= 1              # and the floor mesh
+    # the scene's bounds include both CSG shapes (their proxies span the model boxes)
+    bbox = scene.bbox()
+    assert bbox.min.x < -2.2 and bbox.max.x > 2.2
+
+
+def test_traverse_exposes_primitives_and_update_moves_them():
+    scene = mi.load_dict(scene_dict(csg_shape(csg.Sphere(1.0)), {"type": "csg_aov", "aovs": "dd:depth"}, spp=1))
+    params = mi.traverse(scene)
+    key = "object.primitive_to_world"
+    assert key in params and not params.flags(key) & mi.ParamFlags.NonDifferentiable
+    w = np.array(params[key])
+    np.testing.assert_allclose(w.reshape(3, 4), np.hstack([np.eye(3), np.zeros((3, 1))]), atol=1e-7)
+    w[3] += 3.0                                   # move the sphere by +3 in x
+    params[key] = mi.Float(w)
+    params.update()
+    assert scene.bbox().max.x >= 4.0 - 1e-4
+    shape = [s for s in scene.shapes() if "CSGShape" in str(s)][0]
+    hits = csg.trace(shape.prepared, [[3.0, 0, -5]], [[0, 0, 1.0]])
+    assert hits.t[0] == pytest.approx(4.0, rel=1e-5)
+
+
+# ---- Gradients ----
+
+def _erode(mask):
+    out = mask.copy()
+    h, w = mask.shape
+    pad = np.pad(mask, 1)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            out &= pad[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+    return out
+
+
+def _gradient_check(model, weights, light, eps=0.01, spp=64):
+    """Forward-mode csg_prb derivative vs central differences with the same seed, on pixels
+    whose visible primitive is the same at -eps, 0 and +eps and which are not within a pixel
+    of an edge (visibility derivatives are not computed)."""
+    def d(integrator):
+        return scene_dict(csg_shape(model), integrator, width=64, height=48, spp=spp, extra={"sun": light})
+
+    scene = mi.load_dict({k: v for k, v in d({"type": "csg_prb", "max_depth": 2}).items()
+                          if k not in ("floor", "lamp", "sky")})
+    params = mi.traverse(scene)
+    key = "object.primitive_to_world"
+    base = np.array(params[key])
+    h = mi.Float(0.0)
+    dr.enable_grad(h)
+    params[key] = mi.Float(base) + h * mi.Float(weights)
+    params.update()
+    image = mi.render(scene, params, spp=spp, seed=1)
+    dr.forward(h)
+    grad = dr.grad(image).numpy()
+
+    def at(v, sc):
+        p = mi.traverse(sc)
+        p[key] = mi.Float(base + v * weights)
+        p.update()
+        return np.array(mi.render(sc, spp=spp, seed=1))
+    fd = (at(eps, scene) - at(-eps, scene)) / (2 * eps)
+    aov_scene = mi.load_dict({k: v for k, v in d({"type": "csg_aov", "aovs": "prim:prim_index,dd:depth"}).items()
+                              if k not in ("floor", "lamp", "sky")})
+    aovs = [at(v, aov_scene) for v in (-eps, 0.0, eps)]
+    same = np.all([np.abs(a[..., 3] - aovs[1][..., 3]) < 1e-6 for a in aovs], axis=0)
+    hit = np.all([a[..., 4] > 0 for a in aovs], axis=0)
+    interior = _erode(same & hit)
+    assert interior.sum() > 100
+    g, f = grad[interior], fd[interior]
+    return g, f
+
+
+@pytest.mark.parametrize("case", ["position", "radius", "hole_position"])
+def test_prb_interior_derivatives_match_finite_differences(case):
+    """Tolerance: the summed interior derivative within 2% and a per-pixel correlation > 0.98."""
+    point = {"type": "point", "position": [3, -4, 5], "intensity": 60.0}
+    if case == "position":       # a sphere's centre x: entry 3 of its 3x4 to_world rows
+        model, w = csg.Sphere(1.0), np.eye(1, 12, 3).ravel()
+    elif case == "radius":       # a sphere's radius: the diagonal of the linear part
+        model, w = csg.Sphere(1.0), np.array([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], float)
+    else:                        # the subtracted sphere's centre x (primitive 1, entry 12 + 3)
+        model, w = csg.Box(2.0) - csg.Sphere(1.25), np.eye(1, 24, 15).ravel()
+        point = {"type": "point", "position": [4, -6, 3], "intensity": 60.0}
+    g, f = _gradient_check(model, w.astype(np.float32), point)
+    assert abs(g.sum() - f.sum()) < 0.02 * abs(f.sum()), (g.sum(), f.sum())
+    assert np.corrcoef(g.ravel(), f.ravel())[0, 1] > 0.98
+
+
+def test_inverse_rendering_recovers_a_radius():
+    """Adam on a sphere's radius, from 0.8 to the target 1.0. The sphere fills the view, so
+    every pixel is interior (visibility derivatives are not computed, see csg_prb)."""
+    def d(model):
+        return {"type": "scene", "integrator": {"type": "csg_prb", "max_depth": 2},
+                "sensor": {"type": "perspective", "fov": 14,
+                           "to_world": mi.ScalarTransform4f().look_at([0, -4, 0], [0, 0, 0], [0, 0, 1]),
+                           "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}},
+                           "sampler": {"type": "independent", "sample_count": 8}},
+                "object": csg_shape(model),
+                "lamp": {"type": "point", "position": [2.0, -3.0, 1.5], "intensity": 20.0}}
+
+    target = mi.render(mi.load_dict(d(csg.Sphere(1.0))), spp=256, seed=7)
+    scene = mi.load_dict(d(csg.Sphere(1.0)))
+    params = mi.traverse(scene)
+    key = "object.primitive_to_world"
+    diagonal = mi.Float(np.array([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], np.float32))
+    opt = mi.ad.Adam(lr=0.02)
+    opt["radius"] = mi.Float(0.8)
+    for it in range(60):
+        if it == 40:
+            opt.set_learning_rate(0.005)
+        params[key] = opt["radius"] * diagonal
+        params.update()
+        image = mi.render(scene, params, spp=32, seed=it)
+        dr.backward(dr.mean(dr.square(image - target), axis=None))
+        opt.step()
+    assert abs(opt["radius"][0] - 1.0) < 0.03, opt["radius"]
