@@ -18,7 +18,12 @@ from .models import model_ref  # noqa: E402
 from .io import load, save  # noqa: E402
 
 
-def _register_plugins() -> None:
+def register_plugins() -> None:
+    """Register the `csg` shape and `csg_*` integrators for the current Mitsuba variant.
+
+    `import mitsuba_csg` does this for the variant active then; call it again after
+    `mi.set_variant(...)` switches to another JIT variant.
+    """
     # The plugins live in plugins/ (DESIGN.md §1); installed, that folder is the subpackage
     # mitsuba_csg.plugins. In a source checkout it sits beside this package: look there too.
     import os
@@ -26,11 +31,14 @@ def _register_plugins() -> None:
     if not os.path.isdir(os.path.join(os.path.dirname(__file__), "plugins")) and \
             os.path.isfile(os.path.join(beside, "plugins", "__init__.py")) and beside not in __path__:
         __path__.append(beside)
+    from ._variant import check_variant
+    import mitsuba as mi
+    check_variant(mi.variant())
     from .plugins import register
     register()
 
 
-_register_plugins()
+register_plugins()
 
 
 def to_mesh(model, segments: int = 64):
@@ -42,5 +50,5 @@ def to_mesh(model, segments: int = 64):
 __all__ = [
     "Box", "CSGError", "Cone", "ConvexPolyhedron", "Cylinder", "Hits", "IterationLimitWarning", "ModelError",
     "Node", "Operation", "OptimizedModel", "Prepared", "Primitive", "Prism", "Sphere", "Torus", "TreeTooDeepError",
-    "contains", "difference", "load", "model_ref", "save", "intersection", "optimize", "prepare", "to_mesh", "trace", "trace_rays", "union",
+    "contains", "difference", "load", "model_ref", "register_plugins", "save", "intersection", "optimize", "prepare", "to_mesh", "trace", "trace_rays", "union",
 ]

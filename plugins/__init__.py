@@ -1,22 +1,35 @@
 """Mitsuba plugins of mitsuba-csg, registered by `import mitsuba_csg` (see `register`)."""
 from __future__ import annotations
 
+import importlib
+
 _registered_for: set[str] = set()
+_modules_variant: list[str] = []
 
 
 def register() -> None:
-    """Register the `csg` shape and the `csg_*` integrators for the current Mitsuba variant."""
+    """Register the `csg` shape and the `csg_*` integrators for the current Mitsuba variant.
+
+    The plugin classes derive from the variant's own `mi.Mesh` / `mi.SamplingIntegrator`, so
+    their modules are re-executed for each variant; each registration keeps its classes.
+    """
     import mitsuba as mi
     variant = mi.variant()
     if variant in _registered_for:
         return
-    from . import csg_aov, csg_path, csg_shape
-    mi.register_shape("csg", lambda props: csg_shape.CSGShape(props))
-    mi.register_integrator("csg_path", lambda props: csg_path.CSGPathIntegrator(props))
-    mi.register_integrator("csg_aov", lambda props: csg_aov.CSGAOVIntegrator(props))
-    try:
+    from . import csg_aov, csg_common, csg_path, csg_shape
+    modules = [csg_shape, csg_common, csg_path, csg_aov]
+    if _modules_variant and _modules_variant[-1] != variant:
+        modules = [importlib.reload(m) for m in modules]
+    _modules_variant.append(variant)
+    shape_cls, path_cls, aov_cls = csg_shape.CSGShape, csg_path.CSGPathIntegrator, csg_aov.CSGAOVIntegrator
+    mi.register_shape("csg", lambda props: shape_cls(props))
+    mi.register_integrator("csg_path", lambda props: path_cls(props))
+    mi.register_integrator("csg_aov", lambda props: aov_cls(props))
+    if variant.startswith(("llvm_ad", "cuda_ad")):
         from . import csg_prb
-        mi.register_integrator("csg_prb", lambda props: csg_prb.CSGPRBIntegrator(props))
-    except ImportError:
-        pass
+        if len(_modules_variant) > 1:
+            csg_prb = importlib.reload(csg_prb)
+        prb_cls = csg_prb.CSGPRBIntegrator
+        mi.register_integrator("csg_prb", lambda props: prb_cls(props))
     _registered_for.add(variant)

@@ -7,7 +7,6 @@ import mitsuba as mi
 from mitsuba_csg.attached import attached_hit
 from mitsuba_csg.tracing import trace_rays
 
-from .csg_shape import CSGShape
 
 
 class SceneCSG:
@@ -15,7 +14,8 @@ class SceneCSG:
 
     def __init__(self, scene: mi.Scene):
         shapes = scene.shapes()
-        self.csg = [s for s in shapes if isinstance(s, CSGShape)]
+        # Duck-typed: each Mitsuba variant has its own CSGShape class.
+        self.csg = [s for s in shapes if getattr(s, "is_csg_proxy", False)]
         self.shape_index = {id(s): i for i, s in enumerate(shapes)}
         # Embree costs tens of ms per frame even for tiny scenes: skip it if all is CSG.
         self.has_others = len(self.csg) < len(shapes)

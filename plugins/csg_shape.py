@@ -60,6 +60,8 @@ class CSGShape(mi.Mesh):
                  'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': [0.8, 0.6, 0.2]}}}
     """
 
+    is_csg_proxy = True
+
     def __init__(self, props: mi.Properties):
         model, source = _model_from(props)
         optimize = props.get("optimize", True)

@@ -63,6 +63,19 @@ def test_scalar_variants_are_refused():
     assert "JIT variant" in run.stderr and "llvm_ad_rgb" in run.stderr
 
 
+def test_other_variants_and_variant_switch():
+    code = ("import mitsuba as mi; mi.set_variant('llvm_ad_mono'); import mitsuba_csg as csg;"
+            "d = {'type': 'scene', 'integrator': {'type': 'csg_path'}, 's': {'type': 'csg', 'model': csg.model_ref(csg.Sphere(1))},"
+            " 'e': {'type': 'constant'}, 'c': {'type': 'perspective', 'film': {'type': 'hdrfilm', 'width': 8, 'height': 8},"
+            " 'to_world': mi.ScalarTransform4f().look_at([0, -5, 0], [0, 0, 0], [0, 0, 1])}};"
+            "a = mi.render(mi.load_dict(d), spp=4);"
+            "mi.set_variant('llvm_ad_spectral'); csg.register_plugins(); b = mi.render(mi.load_dict(d), spp=4);"
+            "print(float(a.numpy().mean()) > 0.1, float(b.numpy().mean()) > 0.1)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip().endswith("True True")
+
+
 def test_csg_path_matches_path_on_the_mesh(tmp_path):
     """Metric: relative MSE = mean((a - b)^2) / mean(b^2) at equal spp. Two mesh renders with
     different seeds set the noise floor; the CSG render must be within 1.5x of it (plus the
@@ -79,6 +92,27 @@ def test_csg_path_matches_path_on_the_mesh(tmp_path):
     changed = csg.Box(2.0) - csg.Sphere(1.32) | csg.Torus(0.8, 0.2).translate((0, 0, 1.4))
     theirs = rel_mse(render(scene_dict(csg_shape(changed), integrator, spp=spp), seed=3), mesh_a)
     assert theirs > 2 * threshold, (theirs, noise)
+
+
+def test_all_emitter_kinds_match_path_on_the_mesh(tmp_path):
+    """Area light on a mesh, spot light and an environment map, same metric as above."""
+    env = np.ascontiguousarray(np.ones((16, 32, 3), np.float32) * np.linspace(0.1, 1.0, 16, dtype=np.float32)[:, None, None])
+    mi.Bitmap(env).write(str(tmp_path / "sky.exr"))
+    lights = {
+        "sun": {"type": "spot", "to_world": mi.ScalarTransform4f().look_at([3, -3, 4], [0, 0, 0], [0, 0, 1]),
+                "intensity": 40.0, "cutoff_angle": 30},
+        "sky": {"type": "envmap", "filename": str(tmp_path / "sky.exr"), "scale": 0.5},
+        "lamp": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([-2, 2, 3]).scale(0.7),
+                 "emitter": {"type": "area", "radiance": 8.0}},
+    }
+    spp = 256
+    mesh = mesh_shape(MODEL, tmp_path)
+    mesh_a = render(scene_dict(mesh, {"type": "path", "max_depth": 3}, spp=spp, extra=lights), seed=1)
+    mesh_b = render(scene_dict(mesh, {"type": "path", "max_depth": 3}, spp=spp, extra=lights), seed=2)
+    noise = rel_mse(mesh_a, mesh_b)
+    ours = rel_mse(render(scene_dict(csg_shape(MODEL), {"type": "csg_path", "max_depth": 3}, spp=spp, extra=lights),
+                          seed=3), mesh_a)
+    assert ours < 1.5 * noise + 1e-4, (ours, noise)
 
 
 def _silhouette_free(depth, tol=0.05):
