@@ -41,7 +41,7 @@ py="$venv/bin/python"
 job=${1:-demo}
 [ $# -gt 0 ] && shift
 case "$job" in
-    demo)  exec "$py" -m mitsuba_csg render "$@" ;;
+    demo)  exec "$py" -m mitsuba_csg render --png "$@" ;;
     test)  exec "$py" -m pytest "$@" ;;
     bench) script=$1; shift; exec "$py" "benchmarks/$script" "$@" ;;
     --)    exec "$venv/bin/$1" "${@:2}" ;;

@@ -1,0 +1,273 @@
+"""The `mitsuba-csg` command line: render, info, convert, bench."""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+MODEL_SUFFIXES = (".json", ".gdml", ".csg")
+
+
+class CLIError(Exception):
+    """A user error: printed as one line, exit status 2."""
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w <= 0 or h <= 0 or w * h > 64_000_000:
+            raise ValueError
+        return w, h
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 640x360, got {text!r}") from None
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+        if v <= 0:
+            raise ValueError
+        return v
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+
+
+def _set_variant(name: str | None):
+    import mitsuba as mi
+    if name:
+        if name not in mi.variants():
+            raise CLIError(f"unknown variant {name!r}; available JIT variants: "
+                           + ", ".join(v for v in mi.variants() if not v.startswith("scalar")))
+        if name.startswith("scalar"):
+            raise CLIError(f"variant {name!r} is a scalar variant; mitsuba-csg needs a JIT one (e.g. llvm_ad_rgb)")
+        mi.set_variant(name)
+    import mitsuba_csg as csg
+    csg.register_plugins()
+    return mi, csg
+
+
+def _load_model(path: str):
+    import mitsuba_csg as csg
+    p = Path(path)
+    if not p.exists():
+        raise CLIError(f"{path}: no such file")
+    return csg.load(p)
+
+
+def demo_scene_dict(mi, csg, width, height, spp, integrator):
+    """The built-in demo: the paper's Cheese (a cube minus 500 spheres) on a floor."""
+    from .generators import cheese
+    return model_scene_dict(mi, csg, cheese(500, seed=0), width, height, spp, integrator,
+                            colour=[0.85, 0.65, 0.25])
+
+
+def model_scene_dict(mi, csg, model, width, height, spp, integrator, colour=(0.7, 0.7, 0.72)):
+    """A model on a floor, framed by a camera, lit by a sky and a sun."""
+    from .camera import framing
+    lower, upper = model.bounds()
+    origin, target = framing(lower, upper, 40.0, width / height)
+    size = float((upper - lower).max())
+    return {
+        "type": "scene",
+        "integrator": {"type": integrator, "max_depth": 6} if integrator != "csg_aov" else {"type": "csg_aov"},
+        "sensor": {"type": "perspective", "fov": 40.0, "fov_axis": "x",
+                   "to_world": mi.ScalarTransform4f().look_at(origin.tolist(), target.tolist(), [0, 0, 1]),
+                   "film": {"type": "hdrfilm", "width": width, "height": height},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "model": {"type": "csg", "model": csg.model_ref(model),
+                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(colour)}}},
+        "floor": {"type": "rectangle",
+                  "to_world": mi.ScalarTransform4f().translate([float(target[0]), float(target[1]), float(lower[2])])
+                  .scale(4.0 * size),
+                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.55]}}},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.35, 0.4, 0.5]}},
+        "sun": {"type": "directional", "direction": [-1.0, 1.2, -2.0], "irradiance": {"type": "rgb", "value": [3.0, 2.8, 2.5]}},
+    }
+
+
+def _render(args) -> int:
+    mi, csg = _set_variant(args.variant)
+    import drjit as dr
+    import numpy as np
+    width, height = args.size
+    integrator = args.integrator
+    if args.input is None:
+        scene = mi.load_dict(demo_scene_dict(mi, csg, width, height, args.spp, integrator))
+        what = "the built-in Cheese (500 holes)"
+    elif args.input.lower().endswith(".xml"):
+        if not Path(args.input).exists():
+            raise CLIError(f"{args.input}: no such file")
+        try:
+            scene = mi.load_file(args.input, spp=args.spp, width=width, height=height)
+        except Exception as e:                               # Mitsuba's parser errors
+            raise CLIError(f"{args.input}: {str(e).splitlines()[0]}") from e
+        what = args.input
+    elif args.input.lower().endswith(MODEL_SUFFIXES):
+        scene = mi.load_dict(model_scene_dict(mi, csg, _load_model(args.input), width, height, args.spp, integrator))
+        what = args.input
+    else:
+        raise CLIError(f"{args.input}: expected a Mitsuba scene (.xml) or a model ({', '.join(MODEL_SUFFIXES)})")
+    passes = max(1, min(args.passes, args.spp))
+    spp_per_pass = [args.spp // passes + (1 if i < args.spp % passes else 0) for i in range(passes)]
+    t0 = time.perf_counter()
+    total = None
+    for i, spp in enumerate(spp_per_pass):
+        image = mi.render(scene, spp=spp, seed=i)
+        dr.eval(image)
+        total = image * spp if total is None else total + image * spp
+        _progress(i + 1, passes, time.perf_counter() - t0)
+    image = total / float(args.spp)
+    elapsed = time.perf_counter() - t0
+    out = Path(args.output)
+    if out.suffix.lower() != ".exr":
+        raise CLIError(f"{out}: the output is an OpenEXR file (.exr); add --png for a preview")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    bitmap = mi.Bitmap(image, channel_names=_channels(scene, image))
+    bitmap.write(str(out))
+    written = [out]
+    if args.png:
+        png = out.with_suffix(".png")
+        rgb = np.array(image)[..., :3] if np.array(image).shape[-1] >= 3 else np.array(image)
+        mi.util.write_bitmap(str(png), rgb)
+        written.append(png)
+    print(f"rendered {what} at {width}x{height}, {args.spp} spp, in {elapsed:.1f} s -> "
+          + ", ".join(str(p) for p in written))
+    return 0
+
+
+def _channels(scene, image):
+    names = scene.integrator().aov_names()
+    base = ["R", "G", "B", "A"][: image.shape[-1] - len(names)]
+    return base + list(names) if image.shape[-1] == len(base) + len(names) else None
+
+
+def _progress(done: int, total: int, elapsed: float):
+    if total <= 1 or not sys.stderr.isatty():
+        return
+    bar = "#" * (30 * done // total)
+    sys.stderr.write(f"\r[{bar:<30}] {done}/{total} passes, {elapsed:.1f} s")
+    if done == total:
+        sys.stderr.write("\n")
+    sys.stderr.flush()
+
+
+def _info(args) -> int:
+    _, csg = _set_variant(args.variant)
+    model = _load_model(args.model)
+    leaves = model.leaves()
+    kinds = Counter(type(p).__name__ for p in leaves)
+    ops, stack = Counter(), [model]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, csg.Operation):
+            ops[node.kind] += 1
+            stack.extend(node.children)
+    lower, upper = model.bounds()
+    opt, stats = csg.optimize(model)
+    materials = Counter(p.material for p in leaves if p.material)
+    print(f"{args.model}")
+    print(f"  primitives   {len(leaves)}: " + ", ".join(f"{n} {k}" for k, n in sorted(kinds.items())))
+    print("  operations   " + (", ".join(f"{n} {k}" for k, n in sorted(ops.items())) or "none"))
+    print(f"  materials    " + (", ".join(f"{k} ({n})" for k, n in sorted(materials.items())) or "none"))
+    print(f"  bounds       {lower.round(6).tolist()} .. {upper.round(6).tolist()}")
+    print(f"  height       input {stats['height_input']}, lowered {stats['height_before']}, "
+          f"optimized {stats['height_after']}")
+    print(f"  nodes        lowered {stats['nodes_before']}, optimized {stats['nodes_after']} "
+          f"({stats['leaves_duplicated']} leaves duplicated), optimizer {stats['seconds_total']:.2f} s")
+    return 0
+
+
+def _convert(args) -> int:
+    _, csg = _set_variant(args.variant)
+    model = _load_model(args.model)
+    out = Path(args.output)
+    if out.suffix.lower() not in (".ply", ".obj", ".stl", ".json"):
+        raise CLIError(f"{out}: can write .ply, .obj, .stl (meshes) or .json (native model)")
+    options = {} if out.suffix.lower() == ".json" else {"segments": args.segments}
+    csg.save(model, out, **options)
+    print(f"wrote {out}")
+    return 0
+
+
+def _bench(args) -> int:
+    mi, csg = _set_variant(args.variant)
+    import drjit as dr
+
+    from .camera import framing, look_at_rays
+    from .tracing import _to_array3, trace_rays
+    if args.input is None:
+        from .generators import cheese
+        model, what = cheese(1000), "the Cheese-1000"
+    else:
+        model, what = _load_model(args.input), args.input
+    width, height = args.size
+    prepared = csg.prepare(model, optimize=not args.no_optimize)
+    lower, upper = model.bounds()
+    origin, target = framing(lower, upper, 40.0, width / height)
+    o, d = look_at_rays(origin, target, fov_degrees=40.0, width=width, height=height)
+    O, D = _to_array3(prepared.tree.b, o), _to_array3(prepared.tree.b, d)
+    best = float("inf")
+    for _ in range(args.repeats + 1):
+        t0 = time.perf_counter()
+        hits = trace_rays(prepared, O, D)
+        dr.eval(hits.t, hits.normal, hits.prim)
+        dr.sync_thread()
+        best = min(best, time.perf_counter() - t0)
+    print(f"{what}: {prepared.flat.num_prims} primitives, tree height {prepared.flat.height}; "
+          f"{width}x{height} primary rays in {best * 1e3:.1f} ms = {width * height / best / 1e6:.2f} Mrays/s "
+          f"({mi.variant()}, best of {args.repeats} after a warm-up)")
+    return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="mitsuba-csg", description="Exact CSG ray tracing in Mitsuba 3.")
+    p.add_argument("--verbose", action="store_true", help="show tracebacks on errors")
+    p.add_argument("--variant", help="Mitsuba variant (default: llvm_ad_rgb)")
+    sub = p.add_subparsers(dest="command")
+    r = sub.add_parser("render", help="render a scene (.xml), a model file, or the built-in demo")
+    r.add_argument("input", nargs="?", help="scene .xml or model (.json/.gdml/.csg); none: the demo Cheese")
+    r.add_argument("-o", "--output", default="cheese.exr", help="output OpenEXR file (default: cheese.exr)")
+    r.add_argument("--spp", type=_positive_int, default=16, help="samples per pixel (default 16)")
+    r.add_argument("--size", type=_size, default=(640, 360), help="WIDTHxHEIGHT (default 640x360)")
+    r.add_argument("--integrator", default="csg_path", choices=["csg_path", "csg_aov", "csg_prb"])
+    r.add_argument("--passes", type=_positive_int, default=4, help="render in this many passes (progress)")
+    r.add_argument("--png", action="store_true", help="also write a tonemapped sRGB .png preview")
+    i = sub.add_parser("info", help="primitives, operations, height and bounds of a model")
+    i.add_argument("model")
+    c = sub.add_parser("convert", help="convert a model to a mesh (.ply/.obj/.stl) or native .json")
+    c.add_argument("model")
+    c.add_argument("-o", "--output", required=True)
+    c.add_argument("--segments", type=_positive_int, default=64, help="circular segments of round primitives")
+    b = sub.add_parser("bench", help="primary-ray throughput of a model (default: Cheese-1000)")
+    b.add_argument("input", nargs="?")
+    b.add_argument("--size", type=_size, default=(1280, 720))
+    b.add_argument("--repeats", type=_positive_int, default=3)
+    b.add_argument("--no-optimize", action="store_true")
+    return p
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    p = parser()
+    if not any(a in ("render", "info", "convert", "bench", "-h", "--help") for a in argv):
+        argv = argv[:sum(1 for a in argv if a in ("--verbose",))] + ["render"] + \
+            argv[sum(1 for a in argv if a in ("--verbose",)):]
+    args = p.parse_args(argv)
+    handlers = {"render": _render, "info": _info, "convert": _convert, "bench": _bench}
+    try:
+        return handlers[args.command](args)
+    except KeyboardInterrupt:
+        print("mitsuba-csg: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:
+        from .errors import CSGError
+        if args.verbose:
+            raise
+        if isinstance(e, (CLIError, CSGError, OSError)):
+            print(f"mitsuba-csg: error: {e}", file=sys.stderr)
+            return 2
+        print(f"mitsuba-csg: internal error: {type(e).__name__}: {e} (run with --verbose for details)",
+              file=sys.stderr)
+        return 1

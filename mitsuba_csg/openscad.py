@@ -1,0 +1,743 @@
+"""OpenSCAD `.csg` files (what `openscad -o model.csg model.scad` writes) -> a CSG model.
+
+    group() {
+        difference() {
+            cube(size = [10, 10, 10], center = true);
+            sphere($fn = 0, $fa = 12, $fs = 2, r = 6);
+        }
+        color([1, 0, 0, 1]) multmatrix([[1, 0, 0, 8], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]) {
+            cylinder(h = 4, r1 = 2, r2 = 0, center = false);
+        }
+    }
+
+Supported nodes: `group`, `union`, `render` (implicit unions), `difference`, `intersection`,
+`multmatrix(m)` (4x4 or 3x4 affine), `color(c, alpha)` (a material named `color_R_G_B_A`,
+or the colour's name for `color("red")`), `cube(size, center)`, `sphere(r | d)`,
+`cylinder(h, r1, r2 | r | d | d1 | d2, center)` (cones and r = 0 ends included) and
+`polyhedron(points, faces)` when it is a closed convex solid. The modifiers `#` (highlight)
+and `!` (root: that subtree alone is the model, as in OpenSCAD) keep their subtree; `%`
+(background) and `*` (disabled) drop it. The solids are the exact analytic ones, not
+OpenSCAD's `$fn`/`$fa`/`$fs` facets, which are ignored.
+
+Semantics follow OpenSCAD: a cube has its corner at the origin unless `center = true`; a
+cylinder spans z in [0, h] unless centred; degenerate solids (a size, radius or height <= 0,
+a singular `multmatrix`) produce nothing, with an `OpenSCADWarning`. "Nothing" is handled as
+OpenSCAD does: a difference whose first operand is empty is empty, an intersection with an
+empty operand is empty, a node with no geometric children at all (`group();`) is not an
+operand. A model that ends up empty is a `FormatError`.
+
+Files are untrusted input: every problem is a `FormatError` (a `ModelError`) whose message
+starts with the file, line and column, e.g. `model.csg: line 3, column 5: sphere: r must be a
+finite number, got inf`. 2D and other unsupported nodes (`square`, `linear_extrude`, `hull`,
+`import`, ...) are refused by name, or skipped with a warning when `on_unsupported="skip"`.
+File size, statement count and nesting depth are bounded; parsing and evaluation use
+explicit stacks, never deep recursion.
+"""
+from __future__ import annotations
+
+import bisect
+import math
+import os
+import re
+import warnings
+
+import numpy as np
+
+from . import transform as tf
+from .errors import ModelError
+from .model import DIFFERENCE, INTERSECTION, UNION, Node, Operation
+from .native import FormatError
+from .primitives import Box, Cone, ConvexPolyhedron, Sphere
+
+MAX_FILE_BYTES = 256 * 2 ** 20     # refuse larger files before reading them
+MAX_DEPTH = 10_000                 # nesting of statements
+MAX_VALUE_DEPTH = 64               # nesting of vectors inside one argument value
+MAX_STATEMENTS = 10_000_000        # statements in one file
+
+SUPPORTED_NODES = ("group", "union", "render", "difference", "intersection", "multmatrix", "color",
+                   "cube", "sphere", "cylinder", "polyhedron")
+UNSUPPORTED_NODES = {
+    # 2D primitives and operations
+    "square": "a 2D primitive", "circle": "a 2D primitive", "polygon": "a 2D primitive",
+    "text": "a 2D primitive", "import": "imported geometry", "projection": "a 2D operation",
+    "offset": "a 2D operation", "roof": "a 2D-to-3D operation", "fill": "a 2D operation",
+    "linear_extrude": "a 2D-to-3D extrusion", "rotate_extrude": "a 2D-to-3D extrusion",
+    # 3D nodes mitsuba-csg cannot represent exactly
+    "surface": "a height-map mesh", "minkowski": "a Minkowski sum", "hull": "a convex hull",
+    "resize": "a size-dependent transform",
+}
+
+__all__ = ["FormatError", "OpenSCADWarning", "load", "loads", "SUPPORTED_NODES", "UNSUPPORTED_NODES"]
+
+
+class OpenSCADWarning(UserWarning):
+    """Something OpenSCAD also drops or ignores (a degenerate solid, an unknown argument, a skipped node)."""
+
+
+# ---- Text positions ----
+
+class _Source:
+    """The file name and text, turning offsets into 'line L, column C' for messages."""
+
+    def __init__(self, name: str, text: str):
+        self.name, self.text = name, text
+        self._line_starts = None
+
+    def where(self, pos: int) -> str:
+        if self._line_starts is None:
+            self._line_starts = [0] + [m.end() for m in re.finditer("\n", self.text)]
+        line = bisect.bisect_right(self._line_starts, pos)
+        return f"line {line}, column {pos - self._line_starts[line - 1] + 1}"
+
+    def line(self, pos: int) -> int:
+        self.where(0)
+        return bisect.bisect_right(self._line_starts, pos)
+
+    def fail(self, pos: int, message: str):
+        raise FormatError(f"{self.name}: {self.where(pos)}: {message}")
+
+    def warn(self, pos: int, message: str):
+        warnings.warn(f"{self.name}: {self.where(pos)}: {message}", OpenSCADWarning, stacklevel=4)
+
+
+# ---- Tokens ----
+
+_TOKEN = re.compile(r"""
+    (?P<space>[ \t\r\n\f\v]+|//[^\n]*|/\*.*?\*/)
+  | (?P<num>(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?)
+  | (?P<id>[A-Za-z_$][A-Za-z0-9_]*)
+  | (?P<str>"(?:[^"\\\n]|\\.)*")
+  | (?P<punct>[()\[\]{};,=#%!*:+-])
+  | (?P<bad>/\*|"|.)
+""", re.VERBOSE | re.DOTALL)
+_NUMBER_TAIL = re.compile(r"[A-Za-z0-9_.]")
+_ESCAPES = {"n": "\n", "t": "\t", "r": "\r", '"': '"', "\\": "\\"}
+_ESCAPE = re.compile(r"\\(x[0-9A-Fa-f]{2}|u[0-9A-Fa-f]{4}|U[0-9A-Fa-f]{6}|.)", re.DOTALL)
+_KEYWORDS = {"true": True, "false": False, "undef": None, "inf": math.inf, "nan": math.nan}
+EOF = "<end of file>"
+
+
+def _unescape(m: re.Match) -> str:
+    e = m.group(1)
+    if e[0] in "xuU" and len(e) > 1:
+        code = int(e[1:], 16)
+        return chr(code) if code <= 0x10FFFF else "\ufffd"
+    return _ESCAPES.get(e, e)
+
+
+def _tokens(src: _Source) -> list[tuple[str, object, int]]:
+    """(kind, value, offset) triples: kind is 'num', 'id', 'str', a punctuation character, or EOF."""
+    out = []
+    text = src.text
+    for m in _TOKEN.finditer(text):
+        kind = m.lastgroup
+        if kind == "space":
+            continue
+        pos, s = m.start(), m.group()
+        if kind == "num":
+            if _NUMBER_TAIL.match(text, m.end()):
+                tail = re.match(r"[A-Za-z0-9_.+-]*", text[m.end():m.end() + 40]).group()
+                src.fail(pos, f"malformed number {s + tail!r}")
+            out.append(("num", float(s), pos))
+        elif kind == "id":
+            out.append(("id", s, pos))
+        elif kind == "str":
+            out.append(("str", _ESCAPE.sub(_unescape, s[1:-1]), pos))
+        elif kind == "punct":
+            out.append((s, s, pos))
+        elif s == "/*":
+            src.fail(pos, "unterminated comment /* ... (no closing */)")
+        elif s == '"':
+            src.fail(pos, "unterminated string (no closing \" on this line)")
+        else:
+            src.fail(pos, f"unexpected character {s!r}")
+    out.append((EOF, None, len(text)))
+    return out
+
+
+def _describe_token(tok) -> str:
+    kind, value, _ = tok
+    if kind == EOF:
+        return "the end of the file"
+    if kind == "num":
+        return f"the number {value:g}"
+    if kind == "str":
+        return "a string"
+    return repr(value)
+
+
+# ---- Syntax: text -> statements ----
+
+class _Range:
+    __slots__ = ("values",)
+
+    def __init__(self, values):
+        self.values = values
+
+
+class _Statement:
+    """`modifiers name(args) { children }`; name None for a bare `{ ... }` block."""
+
+    __slots__ = ("name", "args", "pos", "modifiers", "children")
+
+    def __init__(self, name, args, pos, modifiers):
+        self.name, self.args, self.pos, self.modifiers, self.children = name, args, pos, modifiers, []
+
+
+class _Parser:
+    def __init__(self, src: _Source):
+        self.src = src
+        self.toks = _tokens(src)
+        self.i = 0
+        self.count = 0
+
+    def peek(self):
+        return self.toks[self.i]
+
+    def expect(self, kind: str, what: str):
+        tok = self.toks[self.i]
+        if tok[0] != kind:
+            self.src.fail(tok[2], f"expected {what}, got {_describe_token(tok)}")
+        self.i += 1
+        return tok
+
+    # -- values --
+    def value(self, depth: int = 0):
+        tok = self.toks[self.i]
+        kind, val, pos = tok
+        if kind in ("-", "+"):
+            self.i += 1
+            v = self.value(depth)
+            if isinstance(v, bool) or not isinstance(v, float):
+                self.src.fail(pos, f"unary {kind} needs a number, got {'a vector' if isinstance(v, list) else repr(v)}")
+            return -v if kind == "-" else v
+        self.i += 1
+        if kind == "num" or kind == "str":
+            return val
+        if kind == "id":
+            if val in _KEYWORDS:
+                return _KEYWORDS[val]
+            self.src.fail(pos, f"unknown name {val!r} in a value (a .csg file holds only literal values)")
+        if kind == "[":
+            if depth >= MAX_VALUE_DEPTH:
+                self.src.fail(pos, f"vectors nested more than {MAX_VALUE_DEPTH} deep")
+            items = []
+            if self.toks[self.i][0] == "]":
+                self.i += 1
+                return items
+            items.append(self.value(depth + 1))
+            if self.toks[self.i][0] == ":":           # a range [start : step : end]
+                while self.toks[self.i][0] == ":" and len(items) < 3:
+                    self.i += 1
+                    items.append(self.value(depth + 1))
+                self.expect("]", "']' closing a range")
+                return _Range(items)
+            while True:
+                tok = self.toks[self.i]
+                self.i += 1
+                if tok[0] == "]":
+                    return items
+                if tok[0] != ",":
+                    self.src.fail(tok[2], f"expected ',' or ']' in a vector, got {_describe_token(tok)}")
+                if self.toks[self.i][0] == "]":     # trailing comma
+                    self.i += 1
+                    return items
+                items.append(self.value(depth + 1))
+        self.src.fail(pos, f"expected a value, got {_describe_token(tok)}")
+
+    def args(self):
+        args = []
+        self.expect("(", "'('")
+        if self.toks[self.i][0] == ")":
+            self.i += 1
+            return args
+        while True:
+            kind, val, pos = self.toks[self.i]
+            if kind == "id" and self.toks[self.i + 1][0] == "=":
+                self.i += 2
+                args.append((val, self.value(), pos))
+            else:
+                args.append((None, self.value(), pos))
+            tok = self.toks[self.i]
+            self.i += 1
+            if tok[0] == ")":
+                return args
+            if tok[0] != ",":
+                self.src.fail(tok[2], f"expected ',' or ')' after an argument, got {_describe_token(tok)}")
+
+    # -- statements (explicit stack: files may nest deeply) --
+    def parse(self) -> _Statement:
+        root = _Statement(None, [], 0, "")
+        stack = [(root, "root")]      # (statement, 'root' | 'block' | 'single')
+        while True:
+            top, mode = stack[-1]
+            if mode == "single" and top.children:
+                stack.pop()
+                continue
+            kind, val, pos = self.toks[self.i]
+            if kind == "}":
+                if mode != "block":
+                    self.src.fail(pos, "unexpected '}' (no block open)")
+                self.i += 1
+                stack.pop()
+                continue
+            if kind == EOF:
+                if mode == "root":
+                    return root
+                self.src.fail(pos, f"unexpected end of file: the block of "
+                                   f"{top.name or 'a { block'} at {self.src.where(top.pos)} is not closed")
+            modifiers = ""
+            while kind in ("#", "%", "!", "*"):
+                modifiers += kind
+                self.i += 1
+                kind, val, pos = self.toks[self.i]
+            if kind == ";":
+                self.i += 1
+                if mode == "single":
+                    stack.pop()
+                continue
+            self.count += 1
+            if self.count > MAX_STATEMENTS:
+                self.src.fail(pos, f"more than {MAX_STATEMENTS} statements")
+            if len(stack) > MAX_DEPTH:
+                self.src.fail(pos, f"statements nested more than {MAX_DEPTH} deep")
+            if kind == "{":
+                self.i += 1
+                st = _Statement(None, [], pos, modifiers)
+                top.children.append(st)
+                stack.append((st, "block"))
+                continue
+            if kind != "id":
+                self.src.fail(pos, f"expected a statement (a node name such as cube or group), got "
+                                   f"{_describe_token(self.toks[self.i])}")
+            if val in _KEYWORDS:
+                self.src.fail(pos, f"expected a node name, got the keyword {val!r}")
+            self.i += 1
+            st = _Statement(val, self.args(), pos, modifiers)
+            top.children.append(st)
+            kind = self.toks[self.i][0]
+            if kind == ";":
+                self.i += 1
+            elif kind == "{":
+                self.i += 1
+                stack.append((st, "block"))
+            else:
+                stack.append((st, "single"))
+
+
+# ---- Semantics: statements -> model ----
+
+class _Nothing:
+    """NULL: no geometry at all (not an operand); EMPTY: geometry that is the empty set."""
+
+    __slots__ = ("name",)
+
+    def __init__(self, name):
+        self.name = name
+
+    def __repr__(self):
+        return self.name
+
+
+NULL, EMPTY = _Nothing("NULL"), _Nothing("EMPTY")
+
+_POSITIONAL = {
+    "cube": ("size", "center"), "sphere": ("r",), "cylinder": ("h", "r1", "r2", "center"),
+    "polyhedron": ("points", "faces", "convexity"), "multmatrix": ("m",), "color": ("c", "alpha"),
+    "render": ("convexity",),
+}
+_KNOWN_ARGS = {
+    "cube": {"size", "center"}, "sphere": {"r", "d"},
+    "cylinder": {"h", "r", "r1", "r2", "d", "d1", "d2", "center"},
+    "polyhedron": {"points", "faces", "triangles", "convexity"}, "multmatrix": {"m"},
+    "color": {"c", "alpha"}, "render": {"convexity"}, "group": set(), "union": set(),
+    "difference": set(), "intersection": set(),
+}
+
+
+class _Evaluator:
+    def __init__(self, src: _Source, on_unsupported: str):
+        self.src = src
+        self.on_unsupported = on_unsupported
+
+    def arguments(self, st: _Statement) -> dict:
+        names = _POSITIONAL.get(st.name, ())
+        known = _KNOWN_ARGS[st.name]
+        out = {}
+        for i, (key, value, pos) in enumerate(st.args):
+            if key is None:
+                if i >= len(names):
+                    self.src.warn(pos, f"{st.name}: ignoring extra positional argument {i + 1}")
+                    continue
+                key = names[i]
+            elif key.startswith("$"):
+                continue               # $fn, $fa, $fs: facet settings; our solids are exact
+            elif key not in known:
+                self.src.warn(pos, f"{st.name}: ignoring unknown argument {key!r}")
+                continue
+            if key in out:
+                self.src.warn(pos, f"{st.name}: argument {key!r} given more than once; using the last")
+            out[key] = (value, pos)
+        return out
+
+    # -- value checks --
+    def number(self, st, args, key, default):
+        if key not in args or args[key][0] is None:
+            return default
+        value, pos = args[key]
+        if isinstance(value, bool) or not isinstance(value, float):
+            self.src.fail(pos, f"{st.name}: {key} must be a number, got {_show(value)}")
+        if not math.isfinite(value):
+            self.src.fail(pos, f"{st.name}: {key} must be a finite number, got {_show(value)}")
+        return value
+
+    def flag(self, st, args, key) -> bool:
+        if key not in args or args[key][0] is None:
+            return False
+        value, pos = args[key]
+        if not isinstance(value, bool):
+            self.src.fail(pos, f"{st.name}: {key} must be true or false, got {_show(value)}")
+        return value
+
+    def matrix(self, st, args):
+        if "m" not in args or args["m"][0] is None:
+            return tf.IDENTITY
+        value, pos = args["m"]
+        if not (isinstance(value, list) and len(value) in (3, 4) and
+                all(isinstance(r, list) and len(r) == 4 for r in value) and
+                all(isinstance(x, float) and not isinstance(x, bool) for r in value for x in r)):
+            self.src.fail(pos, f"multmatrix: m must be a 4x4 (or 3x4) matrix of numbers, got {_show(value)}")
+        m = np.array(value, dtype=np.float64)
+        if not np.all(np.isfinite(m)):
+            self.src.fail(pos, "multmatrix: m has inf or nan entries")
+        if len(m) == 4 and not np.allclose(m[3], (0.0, 0.0, 0.0, 1.0), rtol=0, atol=1e-6):
+            self.src.fail(pos, f"multmatrix: the last row must be [0, 0, 0, 1] (projective matrices "
+                               f"are not supported), got {_show(value[3])}")
+        try:
+            return tf.affine(m[:3])
+        except ModelError:
+            return None                # singular: the children collapse to nothing 3D
+
+    # -- nodes --
+    def evaluate(self, root: _Statement):
+        """Post-order over the statement tree with an explicit stack; returns Node or NULL/EMPTY."""
+        target = self.find_root(root)
+        results: dict[int, object] = {}
+        stack = [(target, False)]
+        while stack:
+            st, children_done = stack.pop()
+            if _suppressed(st):
+                results[id(st)] = NULL
+                continue
+            if not children_done and st.children and not self.is_unsupported(st):
+                stack.append((st, True))
+                stack.extend((c, False) for c in reversed(st.children))
+                continue
+            kids = [results.pop(id(c)) for c in st.children] if children_done else []
+            results[id(st)] = self.node(st, kids)
+        return results[id(target)]
+
+    def find_root(self, root: _Statement) -> _Statement:
+        """The first `!` statement in document order outside disabled subtrees, else the file."""
+        found = []
+        stack = [root]
+        while stack:
+            st = stack.pop()
+            if _suppressed(st):
+                continue
+            if "!" in st.modifiers:
+                found.append(st)
+                if len(found) > 1:
+                    break
+                continue
+            stack.extend(reversed(st.children))
+        if len(found) > 1:
+            self.src.warn(found[1].pos, "more than one root modifier (!); using the first")
+        return found[0] if found else root
+
+    def is_unsupported(self, st) -> bool:
+        return st.name is not None and st.name not in _KNOWN_ARGS
+
+    def node(self, st: _Statement, kids: list):
+        name = st.name
+        if name is None or name in ("group", "union", "render"):
+            if name == "render":
+                self.arguments(st)
+            return _combine(UNION, kids)
+        if self.is_unsupported(st):
+            what = UNSUPPORTED_NODES.get(name)
+            text = (f"{name} ({what}) is not supported by mitsuba-csg" if what else
+                    f"unknown node {name!r}")
+            if self.on_unsupported == "skip":
+                self.src.warn(st.pos, f"{text}; skipped (on_unsupported='skip'), its subtree is treated as empty")
+                return EMPTY
+            self.src.fail(st.pos, f"{text}; supported nodes: {', '.join(SUPPORTED_NODES)} "
+                                  f"(or load with on_unsupported='skip')")
+        args = self.arguments(st)
+        if name in ("difference", "intersection"):
+            return _combine(DIFFERENCE if name == "difference" else INTERSECTION, kids)
+        if name == "multmatrix":
+            m = self.matrix(st, args)
+            body = _combine(UNION, kids)
+            if isinstance(body, _Nothing):
+                return body
+            if m is None:
+                self.src.warn(st.pos, "multmatrix: singular matrix flattens its children; they are dropped")
+                return EMPTY
+            return body.transform(m) if m is not tf.IDENTITY else body
+        if name == "color":
+            body = _combine(UNION, kids)
+            material = self.color(st, args)
+            return body if isinstance(body, _Nothing) or material is None else body.with_material(material)
+        if st.children:
+            self.src.warn(st.pos, f"{name}: ignoring its {len(st.children)} child statement(s); a primitive has none")
+        try:
+            return getattr(self, "make_" + name)(st, args)
+        except FormatError:
+            raise
+        except ModelError as e:
+            self.src.fail(st.pos, f"{name}: {e}")
+
+    def color(self, st, args):
+        if "c" not in args or args["c"][0] is None:
+            return None
+        value, pos = args["c"]
+        alpha = self.number(st, args, "alpha", None)
+        if isinstance(value, str):
+            name = value.strip()
+            if not name:
+                self.src.warn(pos, "color: empty colour name; no material")
+                return None
+            return name if alpha is None or alpha == 1.0 else f"{name}_{alpha:g}"
+        if (isinstance(value, list) and len(value) in (3, 4) and
+                all(isinstance(x, float) and not isinstance(x, bool) and math.isfinite(x) for x in value)):
+            rgba = list(value) + [1.0] * (4 - len(value))
+            if alpha is not None:
+                rgba[3] = alpha
+            return "color_" + "_".join(f"{x:g}" for x in rgba)
+        self.src.fail(pos, f"color: c must be [r, g, b], [r, g, b, a] or a colour name, got {_show(value)}")
+
+    def make_cube(self, st, args):
+        size = [1.0, 1.0, 1.0]
+        if "size" in args and args["size"][0] is not None:
+            value, pos = args["size"]
+            if isinstance(value, float) and not isinstance(value, bool):
+                size = [value] * 3
+            elif isinstance(value, list) and len(value) == 3 and \
+                    all(isinstance(x, float) and not isinstance(x, bool) for x in value):
+                size = list(value)
+            else:
+                self.src.fail(pos, f"cube: size must be a number or [x, y, z], got {_show(value)}")
+            if not all(math.isfinite(x) for x in size):
+                self.src.fail(pos, f"cube: size must be finite, got {_show(value)}")
+        if min(size) <= 0:
+            self.src.warn(st.pos, f"cube: size {_show(size)} has no volume; OpenSCAD makes nothing of it")
+            return EMPTY
+        box = Box(size)
+        return box if self.flag(st, args, "center") else box.translate(np.array(size) / 2)
+
+    def radius(self, st, args, r_key, d_key, default):
+        if d_key in args and args[d_key][0] is not None:
+            if r_key in args and args[r_key][0] is not None:
+                self.src.warn(args[r_key][1], f"{st.name}: ignoring {r_key} as {d_key} is given too")
+            return self.number(st, args, d_key, None) / 2
+        return self.number(st, args, r_key, default)
+
+    def make_sphere(self, st, args):
+        r = self.radius(st, args, "r", "d", 1.0)
+        if r <= 0:
+            self.src.warn(st.pos, f"sphere: radius {r:g} has no volume; OpenSCAD makes nothing of it")
+            return EMPTY
+        return Sphere(r)
+
+    def make_cylinder(self, st, args):
+        h = self.number(st, args, "h", 1.0)
+        r = self.radius(st, args, "r", "d", 1.0)
+        r1 = self.radius(st, args, "r1", "d1", r)
+        r2 = self.radius(st, args, "r2", "d2", r)
+        if h <= 0 or r1 < 0 or r2 < 0 or (r1 == 0 and r2 == 0):
+            self.src.warn(st.pos, f"cylinder: h={h:g}, r1={r1:g}, r2={r2:g} has no volume; "
+                                  "OpenSCAD makes nothing of it")
+            return EMPTY
+        cone = Cone(r1, r2, h)
+        return cone if self.flag(st, args, "center") else cone.translate((0.0, 0.0, h / 2))
+
+    def make_polyhedron(self, st, args):
+        points = args.get("points", (None, st.pos))
+        faces = args.get("faces") or args.get("triangles") or (None, st.pos)
+        if points[0] is None or faces[0] is None or points[0] == [] or faces[0] == []:
+            self.src.warn(st.pos, "polyhedron: no points or no faces; OpenSCAD makes nothing of it")
+            return EMPTY
+        pts = points[0]
+        if not (isinstance(pts, list) and all(
+                isinstance(p, list) and len(p) == 3 and
+                all(isinstance(x, float) and not isinstance(x, bool) and math.isfinite(x) for x in p)
+                for p in pts)):
+            self.src.fail(points[1], "polyhedron: points must be a list of [x, y, z] with finite numbers")
+        fl = faces[0]
+        if not (isinstance(fl, list) and all(isinstance(f, list) for f in fl)):
+            self.src.fail(faces[1], "polyhedron: faces must be a list of lists of point indices")
+        index_faces = []
+        for k, f in enumerate(fl):
+            if not all(isinstance(x, float) and math.isfinite(x) and x == int(x) for x in f):
+                self.src.fail(faces[1], f"polyhedron: face {k} must hold integer point indices, got {_show(f)}")
+            idx = [int(x) for x in f]
+            bad = [x for x in idx if not 0 <= x < len(pts)]
+            if bad:
+                self.src.fail(faces[1], f"polyhedron: face {k} refers to point {bad[0]}, but there are "
+                                        f"{len(pts)} points (0..{len(pts) - 1})")
+            # drop consecutive repeats (including the closing one)
+            idx = [x for j, x in enumerate(idx) if x != idx[j - 1]] if len(idx) > 1 else idx
+            if len(idx) < 3:
+                self.src.fail(faces[1], f"polyhedron: face {k} has fewer than 3 distinct points")
+            index_faces.append(idx)
+        planes, problem = convex_planes(np.array(pts, dtype=np.float64), index_faces)
+        if problem:
+            line = self.src.line(st.pos)
+            self.src.fail(st.pos, f"polyhedron at line {line} is not {problem}; non-convex polyhedra "
+                                  "need mesh leaves, which mitsuba-csg does not have yet")
+        if len(planes) > ConvexPolyhedron.MAX_PLANES:
+            self.src.fail(st.pos, f"polyhedron: a convex polyhedron with {len(planes)} distinct faces; "
+                                  f"mitsuba-csg allows at most {ConvexPolyhedron.MAX_PLANES}")
+        return ConvexPolyhedron(planes)
+
+
+def convex_planes(points: np.ndarray, faces: list[list[int]]) -> tuple[np.ndarray | None, str | None]:
+    """Outward planes (n, d) of a closed convex polyhedron given by faces, or (None, reason).
+
+    Orientation-agnostic (OpenSCAD's faces are clockwise seen from outside, but the inside is
+    found from the centroid). Tolerances allow for the 6 significant digits of `.csg` numbers.
+    """
+    used = np.unique(np.fromiter((i for f in faces for i in f), dtype=np.int64))
+    p = points[used]
+    scale = max(float(np.max(np.abs(p))), float(np.max(np.ptp(p, axis=0))), 1e-300)
+    tol = 2e-5 * scale
+    # Closed, consistently oriented surface: every directed edge once, its reverse once.
+    edges: dict[tuple[int, int], int] = {}
+    for f in faces:
+        for a, b in zip(f, f[1:] + f[:1]):
+            edges[(a, b)] = edges.get((a, b), 0) + 1
+    for (a, b), n in edges.items():
+        if n != 1 or edges.get((b, a), 0) != 1:
+            return None, (f"a closed convex solid: its faces do not form a closed, consistently "
+                          f"oriented surface (edge between points {a} and {b})")
+    centre = p.mean(axis=0)
+    planes = []
+    for k, f in enumerate(faces):
+        v = points[f]
+        # Newell's normal: area-weighted, counter-clockwise positive.
+        nxt = np.roll(v, -1, axis=0)
+        normal = np.array([np.sum((v[:, 1] - nxt[:, 1]) * (v[:, 2] + nxt[:, 2])),
+                           np.sum((v[:, 2] - nxt[:, 2]) * (v[:, 0] + nxt[:, 0])),
+                           np.sum((v[:, 0] - nxt[:, 0]) * (v[:, 1] + nxt[:, 1]))])
+        length = np.linalg.norm(normal)
+        if length <= 1e-12 * scale * scale:
+            continue                                   # zero-area face: no plane
+        normal /= length
+        offset = float(normal @ v.mean(axis=0))
+        if np.max(np.abs(v @ normal - offset)) > tol:
+            return None, f"convex: face {k} is not planar"
+        if normal @ centre > offset:
+            normal, offset = -normal, -offset
+        if np.max(p @ normal - offset) > tol:
+            return None, f"convex: points lie outside the plane of face {k}"
+        planes.append(np.append(normal, offset))
+    if not planes:
+        return None, "a solid: no face has an area"
+    planes = np.array(planes)
+    unique = [planes[0]]
+    for row in planes[1:]:
+        u = np.array(unique)
+        if not np.any((np.abs(u[:, :3] @ row[:3] - 1) < 1e-9) & (np.abs(u[:, 3] - row[3]) < tol)):
+            unique.append(row)
+    return np.array(unique), None
+
+
+def _suppressed(st: _Statement) -> bool:
+    return "*" in st.modifiers or "%" in st.modifiers
+
+
+def _combine(kind: str, kids: list):
+    """OpenSCAD's rules for operands that are nothing: NULL is no operand; EMPTY is the empty set."""
+    kids = [k for k in kids if k is not NULL]
+    if not kids:
+        return NULL
+    if kind == UNION:
+        nodes = [k for k in kids if k is not EMPTY]
+        if not nodes:
+            return EMPTY
+    elif kind == INTERSECTION:
+        if any(k is EMPTY for k in kids):
+            return EMPTY
+        nodes = kids
+    else:
+        if kids[0] is EMPTY:
+            return EMPTY
+        nodes = [k for k in kids if k is not EMPTY]
+    return nodes[0] if len(nodes) == 1 else Operation(kind, nodes)
+
+
+def _show(value, limit: int = 60) -> str:
+    def text(v):
+        if v is None:
+            return "undef"
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, float):
+            return f"{v:g}"
+        if isinstance(v, str):
+            return '"' + v + '"'
+        if isinstance(v, list):
+            return "[" + ", ".join(text(x) for x in v[:8]) + (", ..." if len(v) > 8 else "") + "]"
+        return repr(v)
+    s = text(value)
+    return s if len(s) <= limit else s[:limit - 3] + "..."
+
+
+# ---- Entry points ----
+
+def loads(text: str | bytes, source: str = "<string>", *, on_unsupported: str = "error") -> Node:
+    """The model of OpenSCAD `.csg` text; `source` names it in messages."""
+    if on_unsupported not in ("error", "skip"):
+        raise ModelError(f"on_unsupported: expected 'error' or 'skip', got {on_unsupported!r}")
+    if isinstance(text, (bytes, bytearray)):
+        if len(text) > MAX_FILE_BYTES:
+            raise FormatError(f"{source}: {len(text)} bytes is larger than the limit of {MAX_FILE_BYTES}")
+        try:
+            text = bytes(text).decode("utf-8")
+        except UnicodeDecodeError as e:
+            line = bytes(text).count(b"\n", 0, e.start) + 1
+            raise FormatError(f"{source}: not UTF-8 text (invalid byte at offset {e.start}, line {line})") from None
+    if not isinstance(text, str):
+        raise FormatError(f"{source}: expected .csg text, got {type(text).__name__}")
+    if len(text) > MAX_FILE_BYTES:
+        raise FormatError(f"{source}: {len(text)} characters is larger than the limit of {MAX_FILE_BYTES}")
+    src = _Source(source, text.removeprefix("\ufeff"))
+    statements = _Parser(src).parse()
+    result = _Evaluator(src, on_unsupported).evaluate(statements)
+    if isinstance(result, _Nothing):
+        raise FormatError(f"{source}: the model is empty (no solid geometry"
+                          f"{'' if result is NULL else ': every solid is degenerate or removed'})")
+    return result
+
+
+def load(path, *, on_unsupported: str = "error") -> Node:
+    """Read an OpenSCAD `.csg` file (`openscad -o model.csg model.scad`).
+
+    `on_unsupported="error"` (default) refuses 2D, extrusion and other unsupported nodes with
+    a FormatError naming the node and line; `"skip"` drops them with an OpenSCADWarning.
+    """
+    source = os.fsdecode(path) if isinstance(path, (str, bytes, os.PathLike)) else repr(path)
+    try:
+        size = os.stat(path).st_size
+        if size > MAX_FILE_BYTES:
+            raise FormatError(f"{source}: {size} bytes is larger than the limit of {MAX_FILE_BYTES}")
+        with open(path, "rb") as f:
+            raw = f.read(MAX_FILE_BYTES + 1)
+    except FileNotFoundError:
+        raise FormatError(f"{source}: no such file") from None
+    except IsADirectoryError:
+        raise FormatError(f"{source}: is a directory, not a model file") from None
+    except (OSError, TypeError, ValueError) as e:
+        raise FormatError(f"{source}: cannot read the file ({getattr(e, 'strerror', None) or e})") from None
+    return loads(raw, source, on_unsupported=on_unsupported)

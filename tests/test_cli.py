@@ -1,0 +1,98 @@
+"""The command line, at small sizes: every subcommand and every error path."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mitsuba_csg.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL = ROOT / "scenes" / "models" / "demo_cheese_small.json"
+
+
+def run(*args):
+    return main([str(a) for a in args])
+
+
+def test_render_demo_writes_exr_and_png(tmp_path, capsys):
+    out = tmp_path / "demo.exr"
+    assert run("render", "--size", "32x18", "--spp", "2", "--passes", "2", "-o", out, "--png") == 0
+    image = np.array(mi.Bitmap(str(out)))
+    assert image.shape[:2] == (18, 32) and np.isfinite(image).all() and image.mean() > 0.01
+    assert (tmp_path / "demo.png").exists()
+    assert "built-in Cheese" in capsys.readouterr().out
+
+
+def test_no_arguments_means_render(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert run("--size", "16x9", "--spp", "1") == 0
+    assert (tmp_path / "cheese.exr").exists()
+
+
+def test_render_model_and_scene(tmp_path):
+    assert run("render", MODEL, "--size", "24x16", "--spp", "1", "-o", tmp_path / "m.exr") == 0
+    assert run("render", ROOT / "scenes" / "cheese.xml", "--size", "24x16", "--spp", "1", "-o", tmp_path / "s.exr") == 0
+    assert run("render", MODEL, "--integrator", "csg_aov", "--size", "8x8", "--spp", "1", "-o", tmp_path / "a.exr") == 0
+    aov = mi.Bitmap(str(tmp_path / "a.exr"))
+    assert "dd.y" in [c for c in aov.struct_()] or aov.channel_count() > 3
+
+
+def test_python_m_entry_point(tmp_path):
+    run_ = subprocess.run([sys.executable, "-m", "mitsuba_csg", "info", str(MODEL)], capture_output=True, text=True,
+                          cwd=ROOT)
+    assert run_.returncode == 0, run_.stderr
+    assert "primitives   21: 1 Box, 20 Sphere" in run_.stdout
+
+
+def test_info(capsys):
+    assert run("info", MODEL) == 0
+    out = capsys.readouterr().out
+    assert "height" in out and "bounds" in out and "optimized" in out
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".stl", ".json"])
+def test_convert(tmp_path, suffix):
+    out = tmp_path / f"model{suffix}"
+    assert run("convert", MODEL, "-o", out, "--segments", "16") == 0
+    assert out.stat().st_size > 100
+
+
+def test_bench(capsys):
+    assert run("bench", MODEL, "--size", "32x18", "--repeats", "1") == 0
+    assert "Mrays/s" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["render", "missing.json"], "missing.json: no such file"),
+    (["render", "model.txt"], "expected a Mitsuba scene"),
+    (["info", "missing.gdml"], "no such file"),
+    (["--variant", "nope", "info", str(MODEL)], "unknown variant 'nope'"),
+    (["--variant", "scalar_rgb", "info", str(MODEL)], "scalar variant"),
+    (["convert", str(MODEL), "-o", "out.xyz"], "can write .ply"),
+    (["render", "-o", "out.png", "--size", "8x8", "--spp", "1"], "OpenEXR"),
+])
+def test_errors_are_one_line(argv, message, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "model.txt").write_text("nothing")
+    assert run(*argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("mitsuba-csg: error:") and message in err and "\n" not in err
+
+
+def test_bad_json_model_names_the_place(tmp_path, capsys):
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "mitsuba-csg", "version": 1, "root": {"type": "sphere", "radius": -1}}')
+    assert run("info", bad) == 2
+    assert "root.radius" in capsys.readouterr().err
+
+
+def test_bad_size_is_an_argument_error(capsys):
+    with pytest.raises(SystemExit) as e:
+        run("render", "--size", "ten")
+    assert e.value.code == 2
+    assert "WIDTHxHEIGHT" in capsys.readouterr().err
