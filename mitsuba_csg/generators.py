@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from .model import Node, difference, union
-from .primitives import Box, Cone, Prism, Sphere
+from .primitives import Box, Cone, Cylinder, Prism, Sphere, Torus
 
 
 def cheese(holes: int = 500, seed: int = 0, size: float = 2.0) -> Node:
@@ -65,4 +65,28 @@ def city(buildings: int = 340, seed: int = 0, windows: int = 2) -> Node:
     return union(*blocks)
 
 
-__all__ = ["cheese", "city", "sphere_chain"]
+def satellite() -> Node:
+    """One satellite (14 primitives): a bus with a dish, solar wings with cut-outs, a ring."""
+    bus = Cylinder(0.5, 1.4) | Prism(6, 0.55, 0.2).translate((0, 0, 0.75))
+    dish = (Sphere(0.6).translate((0, 0, 1.25)) - Sphere(0.58).translate((0, 0, 1.28))) & Box(2.0).translate((0, 0, 1.85))
+    wing = Box((2.2, 0.7, 0.04)) - Box((0.3, 0.5, 0.1)).translate((0.5, 0, 0)) - Box((0.3, 0.5, 0.1)).translate((-0.5, 0, 0))
+    wings = wing.translate((1.7, 0, 0)) | wing.translate((-1.7, 0, 0))
+    mast = Cylinder(0.05, 2.6).rotate("y", 90)
+    ring = Torus(0.75, 0.06)
+    antenna = Cone(0.12, 0.0, 0.5).translate((0, 0, -0.95))
+    return bus | dish | wings | mast | ring | antenna
+
+
+def satellites(count: int = 6250, seed: int = 0, spread: float | None = None) -> Node:
+    """`count` randomly placed and oriented satellites (14 primitives each): 6250 ~ the paper's
+    87.5K primitives, 80000 ~ its 1.12M. Each satellite is a separate subtree of one union."""
+    rng = np.random.default_rng(seed)
+    one = satellite()
+    spread = spread if spread is not None else 4.0 * count ** (1.0 / 3.0)
+    centres = rng.uniform(-spread, spread, (count, 3))
+    axes = rng.normal(size=(count, 3))
+    angles = rng.uniform(0, 360, count)
+    return union(*(one.rotate(tuple(a), float(t)).translate(c) for c, a, t in zip(centres, axes, angles)))
+
+
+__all__ = ["cheese", "city", "satellites", "satellite", "sphere_chain"]
