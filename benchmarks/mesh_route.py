@@ -1,0 +1,89 @@
+"""mitsuba-csg versus the mesh route a user would take today, measured in one run:
+manifold3d booleans -> Mitsuba scene build -> Embree primary rays, against
+optimize + upload -> CSG primary rays, at 1280x720.
+
+    ./run.sh bench mesh_route.py [--scenes cheese-500,cheese-1000,city-3385] [--segments 48]
+
+`segments` is the circle subdivision of round primitives in the mesh (48: a sphere spanning
+~100 pixels shows no facets at 1280x720 in a diffuse render; raise it for close-ups).
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+import common
+from trace_throughput import SCENES, measure, rays_for
+
+
+def mesh_route(model, o, d, segments, repeats):
+    import drjit as dr
+    import mitsuba as mi
+
+    import mitsuba_csg as csg
+    from mitsuba_csg.mesh import mesh_arrays
+    t0 = time.perf_counter()
+    manifold = csg.to_mesh(model, segments=segments)
+    boolean_s = time.perf_counter() - t0
+    verts, tris = mesh_arrays(manifold)
+    t0 = time.perf_counter()
+    mesh = mi.Mesh("csg-mesh", len(verts), len(tris))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(verts.astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(tris.astype(np.uint32).ravel())
+    params.update()
+    scene = mi.load_dict({"type": "scene", "mesh": mesh})
+    build_s = time.perf_counter() - t0
+    ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, i].astype(np.float32)) for i in range(3))),
+                   mi.Vector3f(*(mi.Float(d[:, i].astype(np.float32)) for i in range(3))))
+    dr.eval(ray)
+
+    def run():
+        si = scene.ray_intersect(ray)
+        dr.eval(si.t, si.n, si.prim_index)
+        dr.sync_thread()
+    timing = common.best_of(run, repeats)
+    return dict(triangles=len(tris), boolean_s=boolean_s, scene_build_s=build_s, embree_s=timing["min_s"])
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", default="cheese-500,cheese-1000,city-3385,satellites-87.5k")
+    parser.add_argument("--segments", type=int, default=48)
+    parser.add_argument("--size", default="1280x720")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    import mitsuba_csg as csg
+    from mitsuba_csg import generators
+    width, height = (int(v) for v in args.size.split("x"))
+    rows = []
+    for scene in args.scenes.split(","):
+        model = SCENES[scene](generators)
+        o, d = rays_for(model, width, height)
+        t0 = time.perf_counter()
+        prepared = csg.prepare(model)
+        prepare_s = time.perf_counter() - t0
+        timing, info = measure(prepared, o, d, args.repeats)
+        row = dict(scene=scene, primitives=prepared.flat.num_prims, csg_prepare_s=prepare_s,
+                   csg_trace_s=timing["min_s"], csg_mrays_s=width * height / timing["min_s"] / 1e6)
+        row.update(mesh_route(model, o, d, args.segments, args.repeats))
+        row["embree_mrays_s"] = width * height / row["embree_s"] / 1e6
+        row["csg_first_frame_s"] = row["csg_prepare_s"] + row["csg_trace_s"]
+        row["mesh_first_frame_s"] = row["boolean_s"] + row["scene_build_s"] + row["embree_s"]
+        row["trace_ratio"] = row["csg_trace_s"] / row["embree_s"]
+        rows.append(row)
+        print(f"  {scene} done", flush=True)
+    columns = [("scene", "scene", "s"), ("primitives", "prims", "d"), ("triangles", "mesh tris", "d"),
+               ("boolean_s", "booleans s", ".2f"), ("scene_build_s", "build s", ".2f"),
+               ("embree_s", "Embree s", ".3f"), ("csg_prepare_s", "optimize s", ".2f"), ("csg_trace_s", "CSG s", ".3f"),
+               ("trace_ratio", "CSG/Embree", ".1f"), ("mesh_first_frame_s", "mesh 1st frame s", ".2f"),
+               ("csg_first_frame_s", "CSG 1st frame s", ".2f")]
+    print(f"{width}x{height} primary rays, segments={args.segments}")
+    print(common.table(rows, columns))
+    print(f"wrote {common.write('mesh_route', {'machine': common.machine(), 'args': vars(args), 'rows': rows})}")
+
+
+if __name__ == "__main__":
+    main()
