@@ -37,6 +37,13 @@ if [ ! -f "$stamp" ]; then
 fi
 py="$venv/bin/python"
 
+# The OpenSCAD tests compare with OpenSCAD's own exports of its bundled examples.
+if [ "${1:-demo}" = "test" ] && ! command -v openscad >/dev/null; then
+    echo "run.sh: installing openscad (reference data for the tests)" >&2
+    as_root apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive as_root apt-get install -y -qq --no-install-recommends openscad >/dev/null
+fi
+
 # ---- The job ----
 job=${1:-demo}
 [ $# -gt 0 ] && shift

@@ -5,16 +5,22 @@ from pathlib import Path
 
 from .errors import CSGError
 
-SUPPORTED = {".json": "mitsuba-csg native JSON"}
-PLANNED = {".gdml": "Geant4 GDML", ".csg": "OpenSCAD .csg"}
+SUPPORTED = {".json": "mitsuba-csg native JSON", ".csg": "OpenSCAD .csg"}
+PLANNED = {".gdml": "Geant4 GDML"}
 
 
 def load(path, **options):
-    """Load a model from `path`; the extension picks the format (`.json`)."""
+    """Load a model from `path`; the extension picks the format (`.json`, `.csg`).
+
+    Options go to the format's loader (e.g. `on_unsupported="skip"` for OpenSCAD).
+    """
     suffix = Path(path).suffix.lower()
     if suffix == ".json":
         from . import native
         return native.load(path, **options)
+    if suffix == ".csg":
+        from . import openscad
+        return openscad.load(path, **options)
     if suffix in PLANNED:
         raise CSGError(f"{path}: {PLANNED[suffix]} files are not supported yet; supported: "
                        f"{', '.join(SUPPORTED)}")

@@ -407,16 +407,12 @@ class _Evaluator:
                 all(isinstance(r, list) and len(r) == 4 for r in value) and
                 all(isinstance(x, float) and not isinstance(x, bool) for r in value for x in r)):
             self.src.fail(pos, f"multmatrix: m must be a 4x4 (or 3x4) matrix of numbers, got {_show(value)}")
-        m = np.array(value, dtype=np.float64)
-        if not np.all(np.isfinite(m)):
+        if not all(math.isfinite(x) for r in value for x in r):
             self.src.fail(pos, "multmatrix: m has inf or nan entries")
-        if len(m) == 4 and not np.allclose(m[3], (0.0, 0.0, 0.0, 1.0), rtol=0, atol=1e-6):
+        if len(value) == 4 and max(abs(a - b) for a, b in zip(value[3], (0.0, 0.0, 0.0, 1.0))) > 1e-6:
             self.src.fail(pos, f"multmatrix: the last row must be [0, 0, 0, 1] (projective matrices "
                                f"are not supported), got {_show(value[3])}")
-        try:
-            return tf.affine(m[:3])
-        except ModelError:
-            return None                # singular: the children collapse to nothing 3D
+        return np.array(value[:3] + [[0.0, 0.0, 0.0, 1.0]], dtype=np.float64)
 
     # -- nodes --
     def evaluate(self, root: _Statement):
@@ -481,10 +477,13 @@ class _Evaluator:
             body = _combine(UNION, kids)
             if isinstance(body, _Nothing):
                 return body
-            if m is None:
+            if m is tf.IDENTITY or np.array_equal(m, tf.IDENTITY):
+                return body
+            try:
+                return body.transform(m)
+            except ModelError:         # singular: the children collapse to nothing 3D
                 self.src.warn(st.pos, "multmatrix: singular matrix flattens its children; they are dropped")
                 return EMPTY
-            return body.transform(m) if m is not tf.IDENTITY else body
         if name == "color":
             body = _combine(UNION, kids)
             material = self.color(st, args)

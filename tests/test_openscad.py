@@ -1,0 +1,578 @@
+"""The OpenSCAD `.csg` loader: hand-written files for every node, modifier and error, OpenSCAD's
+own examples (exported by `openscad` when it is installed) against its STL export, and a fuzz
+test that only ever sees FormatError / ModelError.
+"""
+import math
+import os
+import random
+import re
+import shutil
+import subprocess
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mitsuba_csg as csg
+from mitsuba_csg import openscad
+from mitsuba_csg.errors import ModelError
+from mitsuba_csg.openscad import FormatError, OpenSCADWarning
+
+
+def load(text, **kw):
+    return openscad.loads(text, "t.csg", **kw)
+
+
+def inside(model, *points):
+    return csg.contains(model, np.array(points, dtype=float)).tolist()
+
+
+def bounds(model):
+    lo, hi = model.bounds()
+    return np.round(lo, 9).tolist(), np.round(hi, 9).tolist()
+
+
+def mc_volume(model, lo, hi, n=200_000, seed=1):
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(lo, hi, size=(n, 3))
+    frac = csg.contains(model, p).mean()
+    box = float(np.prod(np.asarray(hi) - lo))
+    return frac * box, math.sqrt(max(frac * (1 - frac), 1e-12) / n) * box
+
+
+# ---- Primitives and their conventions ----
+
+def test_cube_has_its_corner_at_the_origin():
+    m = load("cube(size = [2, 4, 6], center = false);")
+    assert bounds(m) == ([0, 0, 0], [2, 4, 6])
+    assert inside(m, (1, 2, 3), (-0.1, 2, 3), (1.9, 3.9, 5.9)) == [True, False, True]
+    assert bounds(load("cube([2, 4, 6]);")) == ([0, 0, 0], [2, 4, 6])        # positional
+    assert bounds(load("cube(2);")) == ([0, 0, 0], [2, 2, 2])                 # scalar size
+    assert bounds(load("cube();")) == ([0, 0, 0], [1, 1, 1])                  # default 1
+
+
+def test_centred_cube():
+    m = load("cube(size = [2, 4, 6], center = true);")
+    assert bounds(m) == ([-1, -2, -3], [1, 2, 3])
+    assert isinstance(m, csg.Box) and m.size == (2, 4, 6)
+    assert bounds(load("cube([2, 4, 6], true);")) == ([-1, -2, -3], [1, 2, 3])
+
+
+def test_sphere_radius_and_diameter():
+    m = load("sphere($fn = 0, $fa = 12, $fs = 2, r = 5);")
+    assert isinstance(m, csg.Sphere) and m.radius == 5
+    assert load("sphere(d = 4);").radius == 2
+    assert load("sphere(3);").radius == 3
+    assert load("sphere();").radius == 1
+    t = csg.trace(m, [[0, 0, -10]], [[0, 0, 1]]).t
+    assert t[0] == pytest.approx(5, abs=1e-5)
+
+
+def test_cylinder_spans_zero_to_h_unless_centred():
+    m = load("cylinder($fn = 0, $fa = 12, $fs = 2, h = 10, r1 = 2, r2 = 2, center = false);")
+    assert bounds(m) == ([-2, -2, 0], [2, 2, 10])
+    leaf = m.leaves()[0]
+    assert (leaf.radius_bottom, leaf.radius_top, leaf.height) == (2, 2, 10)
+    c = load("cylinder(h = 10, r1 = 2, r2 = 2, center = true);")
+    assert bounds(c) == ([-2, -2, -5], [2, 2, 5])
+    assert bounds(load("cylinder(h = 4, r = 1);")) == ([-1, -1, 0], [1, 1, 4])
+    assert bounds(load("cylinder(h = 4, d = 1);")) == ([-0.5, -0.5, 0], [0.5, 0.5, 4])
+    assert bounds(load("cylinder(4, 1, 1, true);")) == ([-1, -1, -2], [1, 1, 2])
+    assert bounds(load("cylinder();")) == ([-1, -1, 0], [1, 1, 1])
+
+
+def test_cone_with_a_zero_radius_end():
+    m = load("cylinder(h = 10, r1 = 3, r2 = 0, center = false);")
+    leaf = m.leaves()[0]
+    assert (leaf.radius_bottom, leaf.radius_top) == (3, 0)
+    # wide at z = 0, a point at z = 10
+    assert inside(m, (2.9, 0, 0.05), (0, 0, 9.9), (1, 0, 9), (0.2, 0, 9)) == [True, True, False, True]
+    up = load("cylinder(h = 10, r1 = 0, r2 = 3, center = true);")
+    assert inside(up, (2.9, 0, 4.95), (2.9, 0, -4.95)) == [True, False]
+    # a ray along x at z = 5 meets the cone at radius 1.5
+    t = csg.trace(m, [[-10, 0, 5]], [[1, 0, 0]]).t
+    assert t[0] == pytest.approx(10 - 1.5, abs=1e-4)
+
+
+def test_multmatrix_rotation_and_translation():
+    # rotate 90 degrees about z, then translate by (10, 0, 0): x' = -y + 10, y' = x
+    m = load("""multmatrix([[6.12323e-17, -1, 0, 10], [1, 6.12323e-17, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]) {
+                    cube(size = [4, 1, 1], center = false);
+                }""")
+    lo, hi = m.bounds()
+    np.testing.assert_allclose(lo, [9, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(hi, [10, 4, 1], atol=1e-6)
+    # a 3x4 matrix and a single child without braces
+    m = load("multmatrix(m = [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 5]]) sphere(1);")
+    lo, hi = m.bounds()
+    np.testing.assert_allclose(lo, [-2, -1, 4], atol=1e-6)
+    np.testing.assert_allclose(hi, [2, 1, 6], atol=1e-6)
+
+
+def test_color_names_the_material():
+    m = load("color([0.8, 0.2, 0.2, 1]) { cube(); }")
+    assert m.leaves()[0].material == "color_0.8_0.2_0.2_1"
+    assert load("color([0, 0.501961, 0]) cube();").leaves()[0].material == "color_0_0.501961_0_1"
+    assert load('color("red") cube();').leaves()[0].material == "red"
+    assert load('color(c = [1, 0, 0], alpha = 0.5) cube();').leaves()[0].material == "color_1_0_0_0.5"
+    nested = load("color([1, 0, 0, 1]) { cube(); color([0, 0, 1, 1]) sphere(); }")
+    assert [leaf.material for leaf in nested.leaves()] == ["color_1_0_0_1", "color_0_0_1_1"]   # inner wins
+
+
+def test_booleans():
+    text = """group() {
+        difference() {
+            cube(size = [2, 2, 2], center = true);
+            sphere(r = 0.5);
+            multmatrix([[1, 0, 0, 1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]) sphere(r = 0.5);
+        }
+    }"""
+    m = load(text)
+    assert inside(m, (0, 0, 0), (0.9, 0.9, 0.9), (0.9, 0, 0), (-0.7, 0, 0)) == [False, True, False, True]
+    i = load("intersection() { cube(size = 2, center = true); sphere(r = 1.2); }")
+    assert inside(i, (0, 0, 0), (0.95, 0.95, 0.95), (0.9, 0, 0)) == [True, False, True]
+    u = load("union() { cube(size = 1); multmatrix([[1,0,0,3],[0,1,0,0],[0,0,1,0],[0,0,0,1]]) cube(size = 1); }")
+    assert inside(u, (0.5, 0.5, 0.5), (3.5, 0.5, 0.5), (2, 0.5, 0.5)) == [True, True, False]
+    r = load("render(convexity = 2) { sphere(1); }")
+    assert isinstance(r, csg.Sphere)
+    # a ray through the difference: enters the box at x=-1, leaves at the first hole
+    t = csg.trace(m, [[-5, 0, 0]], [[1, 0, 0]]).t
+    assert t[0] == pytest.approx(4, abs=1e-5)
+
+
+def test_convex_polyhedron():
+    # example011.scad: a square pyramid (faces clockwise seen from outside)
+    text = ("polyhedron(points = [[10, 0, 0], [0, 10, 0], [-10, 0, 0], [0, -10, 0], [0, 0, 10]], "
+            "faces = [[0, 1, 2, 3], [4, 1, 0], [4, 2, 1], [4, 3, 2], [4, 0, 3]], convexity = 1);")
+    m = load(text)
+    assert isinstance(m, csg.ConvexPolyhedron) and len(m.planes) == 5
+    assert inside(m, (0, 0, 1), (0, 0, 9.5), (6, 6, 1), (0, 0, -0.1)) == [True, True, False, False]
+    vol, err = mc_volume(m, (-10, -10, 0), (10, 10, 10), n=100_000)
+    assert vol == pytest.approx(200 * 10 / 3, abs=4 * err)
+    # the same with the faces reversed (counter-clockwise) and a cube split into triangles
+    rev = text.replace("[0, 1, 2, 3], [4, 1, 0], [4, 2, 1], [4, 3, 2], [4, 0, 3]",
+                       "[3, 2, 1, 0], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]")
+    assert len(load(rev).planes) == 5
+    tri_cube = ("polyhedron(points = [[0,0,0],[1,0,0],[1,1,0],[0,1,0],[0,0,1],[1,0,1],[1,1,1],[0,1,1]], "
+                "triangles = [[0,1,2],[0,2,3],[4,6,5],[4,7,6],[0,4,5],[0,5,1],[1,5,6],[1,6,2],"
+                "[2,6,7],[2,7,3],[3,7,4],[3,4,0]]);")
+    cube = load(tri_cube)
+    assert len(cube.planes) == 6
+    assert bounds(cube) == ([0, 0, 0], [1, 1, 1])
+
+
+def test_non_convex_or_open_polyhedra_are_refused():
+    # a cube with a dent: the top centre vertex pushed down
+    dented = """group() {
+polyhedron(points = [[0,0,0],[2,0,0],[2,2,0],[0,2,0],[0,0,2],[2,0,2],[2,2,2],[0,2,2],[1,1,1]],
+  faces = [[0,1,2,3],[5,4,8],[6,5,8],[7,6,8],[4,7,8],[0,4,5,1],[1,5,6,2],[2,6,7,3],[3,7,4,0]]);
+}"""
+    with pytest.raises(FormatError, match=r"t\.csg: line 2, column 1: polyhedron at line 2 is not convex.*mesh leaves"):
+        load(dented)
+    open_box = ("polyhedron(points = [[0,0,0],[1,0,0],[1,1,0],[0,1,0],[0,0,1],[1,0,1],[1,1,1],[0,1,1]], "
+                "faces = [[0,1,2,3],[0,4,5,1],[1,5,6,2],[2,6,7,3],[3,7,4,0]]);")
+    with pytest.raises(FormatError, match="not a closed convex solid"):
+        load(open_box)
+    with pytest.raises(FormatError, match="refers to point 9"):
+        load("polyhedron(points = [[0,0,0],[1,0,0],[0,1,0],[0,0,1]], faces = [[0,1,9]]);")
+    with pytest.raises(FormatError, match="integer point indices"):
+        load("polyhedron(points = [[0,0,0],[1,0,0],[0,1,0],[0,0,1]], faces = [[0,1,2.5]]);")
+    with pytest.raises(FormatError, match="points must be"):
+        load("polyhedron(points = [[0,0],[1,0,0]], faces = [[0,1,2]]);")
+
+
+# ---- Modifiers ----
+
+def test_modifiers():
+    base = "cube(size = 2, center = true);"
+    m = load("group() { %sphere(r = 5); " + base + " }")
+    assert isinstance(m, csg.Box)                     # background: dropped
+    m = load("group() { *sphere(r = 5); " + base + " }")
+    assert isinstance(m, csg.Box)                     # disabled: dropped
+    m = load("difference() { " + base + " #sphere(r = 0.5); }")
+    assert inside(m, (0, 0, 0), (0.8, 0.8, 0.8)) == [False, True]     # highlight: kept
+    m = load("difference() { " + base + " multmatrix([[1,0,0,9],[0,1,0,0],[0,0,1,0],[0,0,0,1]]) { !sphere(r = 0.5); } }")
+    assert isinstance(m, csg.Sphere) and bounds(m) == ([-0.5] * 3, [0.5] * 3)   # root: alone, untransformed
+    # a background subtree is not evaluated: its unsupported nodes are no error
+    assert isinstance(load("group() { %linear_extrude(height = 1) square(1); " + base + " }"), csg.Box)
+    # a background first operand is no operand of a difference (OpenSCAD skips it)
+    m = load("difference() { %cube(10); " + base + " sphere(0.5); }")
+    assert inside(m, (0, 0, 0), (0.8, 0.8, 0.8)) == [False, True]
+
+
+# ---- Nothing: degenerate solids and empty groups ----
+
+def test_degenerate_solids_produce_nothing():
+    with pytest.warns(OpenSCADWarning, match="line 1.*cylinder.*no volume"):
+        m = load("group() { cylinder(h = 1, r1 = 0, r2 = 0); sphere(1); }")
+    assert isinstance(m, csg.Sphere)
+    for text in ("cube(size = [1, 0, 1]);", "sphere(r = 0);", "cylinder(h = 0, r = 1);", "cube(-1);"):
+        with pytest.warns(OpenSCADWarning):
+            with pytest.raises(FormatError, match="the model is empty"):
+                load(text)
+    with pytest.warns(OpenSCADWarning, match="singular"):
+        m = load("group() { multmatrix([[1,0,0,0],[0,1,0,0],[0,0,0,0],[0,0,0,1]]) cube(1); sphere(1); }")
+    assert isinstance(m, csg.Sphere)
+
+
+def test_empty_operands_follow_openscad():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OpenSCADWarning)
+        # difference with an empty first operand is empty
+        with pytest.raises(FormatError, match="empty"):
+            load("difference() { sphere(r = 0); cube(1); }")
+        # an empty later operand removes nothing
+        assert isinstance(load("difference() { cube(1); sphere(r = 0); }"), csg.Box)
+        # an intersection with an empty operand is empty
+        with pytest.raises(FormatError, match="empty"):
+            load("intersection() { cube(1); cube(0); }")
+        # ... but a group with no children at all is no operand
+        assert isinstance(load("difference() { group(); cube(1); }"), csg.Box)
+        assert isinstance(load("intersection() { group(); cube(1); }"), csg.Box)
+        m = load("group() { difference() { cube(0); cube(1); } sphere(1); }")
+        assert isinstance(m, csg.Sphere)
+    with pytest.raises(FormatError, match="empty"):
+        load("group();")
+    with pytest.raises(FormatError, match="empty"):
+        load("// nothing here\n")
+
+
+# ---- Unsupported nodes ----
+
+@pytest.mark.parametrize("name", sorted(openscad.UNSUPPORTED_NODES))
+def test_unsupported_nodes_are_refused_by_name(name):
+    text = f"group() {{\n  cube(1);\n  {name}(convexity = 1) {{ square(size = [1, 1], center = false); }}\n}}"
+    with pytest.raises(FormatError, match=rf"t\.csg: line 3, column 3: {name} \(.*\) is not supported"):
+        load(text)
+    with pytest.warns(OpenSCADWarning, match=rf"line 3, column 3: {name} .*skipped"):
+        m = load(text, on_unsupported="skip")
+    assert isinstance(m, csg.Box)
+
+
+def test_unknown_node():
+    with pytest.raises(FormatError, match=r"line 2, column 3: unknown node 'frobnicate'"):
+        load("group() {\n  frobnicate(x = 1);\n}")
+    with pytest.warns(OpenSCADWarning, match="frobnicate"):
+        with pytest.raises(FormatError, match="empty"):
+            load("frobnicate();", on_unsupported="skip")
+    with pytest.raises(ModelError, match="on_unsupported"):
+        load("cube();", on_unsupported="maybe")
+
+
+def test_skipped_first_operand_empties_a_difference():
+    with pytest.warns(OpenSCADWarning):
+        with pytest.raises(FormatError, match="empty"):
+            load("difference() { linear_extrude(height = 1) square(1); cube(1); }", on_unsupported="skip")
+
+
+# ---- Syntax and values ----
+
+def test_syntax_details():
+    text = """/* a block comment */
+    // a line comment
+    group() {
+        ;
+        { sphere(r = 1); }
+        multmatrix(m = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1],]) cube(size = [.5, 5e-1, 0.5e0]);
+        sphere(r = +2, $fn = 8, $fa = 12, $fs = 2, $t = [0 : 1 : 10], label = undef);
+    }"""
+    with pytest.warns(OpenSCADWarning, match="unknown argument 'label'"):
+        m = load(text)
+    assert [type(leaf).__name__ for leaf in m.leaves()] == ["Sphere", "Box", "Sphere"]
+    assert m.leaves()[1].size == (0.5, 0.5, 0.5)
+    assert load(b"\xef\xbb\xbfsphere(r = 2);").radius == 2           # bytes with a BOM
+    # undef means the default
+    assert load("sphere(r = undef);").radius == 1
+
+
+BAD = [
+    ("cube(size = [1, 2, 3]", r"line 1, column 22: expected ',' or '\)'"),
+    ("cube(size = [1, 2, 3);", r"line 1, column 21: expected ',' or '\]'"),
+    ("group() {\n cube(1);\n", r"line 3, column 1: unexpected end of file: the block of group at line 1"),
+    ("cube(1); }", r"line 1, column 10: unexpected '}'"),
+    ("cube(size = 1.2.3);", r"line 1, column 13: malformed number '1\.2\.3'"),
+    ("cube(size = 1e);", r"malformed number '1e'"),
+    ("cube(size = foo);", r"unknown name 'foo'"),
+    ("cube(size = 1) @", r"line 1, column 16: unexpected character '@'"),
+    ('color("red) cube();', r"unterminated string"),
+    ("/* cube();", r"unterminated comment"),
+    ("sphere(r = inf);", r"line 1, column 8: sphere: r must be a finite number, got inf"),
+    ("sphere(r = -inf);", r"must be a finite number, got -inf"),
+    ("sphere(r = nan);", r"must be a finite number, got nan"),
+    ("sphere(r = 1e999);", r"must be a finite number, got inf"),
+    ('sphere(r = "big");', r'sphere: r must be a number, got "big"'),
+    ("sphere(r = [1, 2]);", r"sphere: r must be a number, got \[1, 2\]"),
+    ("cube(size = [1, 2]);", r"cube: size must be a number or \[x, y, z\]"),
+    ("cube(size = [1, inf, 2]);", r"cube: size must be finite"),
+    ("cube(size = 1, center = 1);", r"cube: center must be true or false"),
+    ("cylinder(h = true, r = 1);", r"cylinder: h must be a number, got true"),
+    ("multmatrix(m = [[1, 0], [0, 1]]) cube();", r"multmatrix: m must be a 4x4"),
+    ("multmatrix(m = [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,1,1]]) cube();", r"projective"),
+    ("multmatrix(m = [[1,0,0,0],[0,1,0,0],[0,0,1,nan],[0,0,0,1]]) cube();", r"inf or nan"),
+    ("color(c = 7) cube();", r"color: c must be"),
+    ("cube(size = -true);", r"unary - needs a number"),
+    ("true();", r"expected a node name, got the keyword 'true'"),
+    ("cube(size = );", r"expected a value, got '\)'"),
+    ("= cube();", r"expected a statement"),
+    ("cube(size = [[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[1]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]);",
+     r"nested more than 64 deep"),
+]
+
+
+@pytest.mark.parametrize("text, message", BAD, ids=[b[0][:30] for b in BAD])
+def test_bad_files_raise_one_clear_error(text, message):
+    with pytest.raises(FormatError, match=r"^t\.csg: .*" + message):
+        load(text)
+
+
+def test_bounds_on_depth_and_size(monkeypatch, tmp_path):
+    deep = 3000
+    m = load("multmatrix([[1,0,0,1],[0,1,0,0],[0,0,1,0],[0,0,0,1]]) {" * deep + "sphere(1);" + "}" * deep)
+    lo, hi = m.bounds()
+    np.testing.assert_allclose(lo, [deep - 1, -1, -1], atol=1e-6)
+    monkeypatch.setattr(openscad, "MAX_DEPTH", 100)
+    with pytest.raises(FormatError, match="nested more than 100 deep"):
+        load("group() {" * 200 + "sphere(1);" + "}" * 200)
+    monkeypatch.setattr(openscad, "MAX_FILE_BYTES", 100)
+    with pytest.raises(FormatError, match="larger than the limit"):
+        load("group() {" * 20 + "}" * 20)
+    path = tmp_path / "big.csg"
+    path.write_text("sphere(1);" * 20)
+    with pytest.raises(FormatError, match=r"big\.csg: 200 bytes is larger than the limit of 100"):
+        openscad.load(path)
+
+
+def test_load_files(tmp_path):
+    path = tmp_path / "m.csg"
+    path.write_text("group() {\n\tcube(size = [1, 2, 3], center = true);\n}\n")
+    assert isinstance(openscad.load(path), csg.Box)
+    assert isinstance(openscad.load(str(path)), csg.Box)
+    with pytest.raises(FormatError, match="no such file"):
+        openscad.load(tmp_path / "missing.csg")
+    with pytest.raises(FormatError, match="is a directory"):
+        openscad.load(tmp_path)
+    bad = tmp_path / "bad.csg"
+    bad.write_bytes(b"cube();\n\xff\xfe")
+    with pytest.raises(FormatError, match=r"bad\.csg: not UTF-8 text \(invalid byte at offset 8, line 2\)"):
+        openscad.load(bad)
+    (tmp_path / "err.csg").write_text("group() {\n  sphere(r = inf);\n}\n")
+    with pytest.raises(FormatError, match=r"err\.csg: line 2, column 10: sphere: r must be a finite number"):
+        openscad.load(tmp_path / "err.csg")
+
+
+# ---- Fuzz ----
+
+SEEDS = [
+    """group() {
+\tmultmatrix([[1, 0, 0, -24], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]) {
+\t\tunion() {
+\t\t\tcube(size = [15, 15, 15], center = true);
+\t\t\tsphere($fn = 0, $fa = 12, $fs = 2, r = 10);
+\t\t}
+\t}
+\tintersection() {
+\t\tcube(size = [15, 15, 15], center = true);
+\t\t%sphere($fn = 0, $fa = 12, $fs = 2, r = 10);
+\t}
+\tcolor([1, 0, 0, 1]) {
+\t\tdifference() {
+\t\t\tcylinder($fn = 0, $fa = 12, $fs = 2, h = 10, r1 = 5, r2 = 0, center = false);
+\t\t\t#cube(size = 2);
+\t\t}
+\t}
+}
+""",
+    """polyhedron(points = [[10, 0, 0], [0, 10, 0], [-10, 0, 0], [0, -10, 0], [0, 0, 10]], faces = [[0, 1, 2, 3], [4, 1, 0], [4, 2, 1], [4, 3, 2], [4, 0, 3]], convexity = 1);
+render(convexity = 1) { color("red", 0.5) multmatrix([[0, 0, 1, 0], [0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1]]) cylinder(h = 62.5, r1 = 12.5, r2 = 12.5, center = true); }
+""",
+]
+JUNK = ["", "{", "}", "(", ")", "[", "]", ";", ",", "=", "#", "%", "!", "*", "-", ":", '"', "/*", "//", "\n",
+        "inf", "-inf", "nan", "undef", "true", "1e999", "0", "-1", "1.2.3", "cube", "square(1);", "group() {",
+        "[[1,0],[0,1]]", "\x00", "é", "$fn", "x"]
+
+
+def _mutate(text: str, rng: random.Random) -> str:
+    for _ in range(rng.randint(1, 4)):
+        op = rng.randrange(5)
+        i = rng.randrange(len(text) + 1)
+        if op == 0 and text:                               # delete a span
+            text = text[:i] + text[i + rng.randint(1, 6):]
+        elif op == 1:                                      # insert junk
+            text = text[:i] + rng.choice(JUNK) + text[i:]
+        elif op == 2:                                      # swap a number for something else
+            nums = list(re.finditer(r"-?[0-9.]+(?:e-?[0-9]+)?", text))
+            if nums:
+                m = rng.choice(nums)
+                text = text[:m.start()] + rng.choice(JUNK + ["0", "1e-300", "-0", "1e30", "3.5"]) + text[m.end():]
+        elif op == 3:                                      # truncate
+            text = text[:i]
+        else:                                              # duplicate a span
+            j = min(len(text), i + rng.randint(1, 40))
+            text = text[:j] + text[i:j] + text[j:]
+    return text
+
+
+def test_fuzz_only_format_errors():
+    rng = random.Random(1234)
+    outcomes = {"ok": 0, "error": 0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OpenSCADWarning)
+        for k in range(1500):
+            text = _mutate(rng.choice(SEEDS), rng)
+            for mode in ("error", "skip"):
+                try:
+                    model = load(text, on_unsupported=mode)
+                    model.bounds()                          # the model is usable
+                    outcomes["ok"] += 1
+                except ModelError as e:                     # FormatError is a ModelError
+                    assert str(e).startswith("t.csg: "), (text, e)
+                    outcomes["error"] += 1
+                except Exception as e:                      # pragma: no cover - the failure report
+                    raise AssertionError(f"{type(e).__name__}: {e}\n--- input ---\n{text}") from e
+    assert outcomes["ok"] > 100 and outcomes["error"] > 100, outcomes
+
+
+# ---- OpenSCAD's own examples, against its STL export ----
+
+EXAMPLES = Path("/usr/share/openscad/examples")
+OPENSCAD = shutil.which("openscad")
+# Examples that use only supported nodes and export quickly (OpenSCAD 2021.01; seconds of CGAL each).
+COMPARED = ["Basics/CSG.scad", "Basics/logo.scad", "Old/example001.scad", "Old/example002.scad",
+            "Old/example003.scad", "Old/example004.scad", "Old/example005.scad", "Old/example011.scad",
+            "Old/example014.scad"]
+needs_openscad = pytest.mark.skipif(OPENSCAD is None or not EXAMPLES.is_dir(),
+                                    reason="needs the `openscad` program and its examples (apt-get install openscad)")
+
+
+def _export(scad: Path, out: Path, fmt: str | None = None) -> Path:
+    cmd = [OPENSCAD, "-o", str(out)] + (["--export-format", fmt] if fmt else []) + [str(scad)]
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+    try:
+        res = subprocess.run(cmd, cwd=scad.parent, capture_output=True, text=True, timeout=180, env=env)
+    except subprocess.TimeoutExpired:
+        pytest.skip(f"openscad took too long exporting {scad.name}")
+    if res.returncode != 0 or not out.is_file():
+        pytest.skip(f"openscad could not export {scad.name} headless: {res.stderr[-300:]}")
+    return out
+
+
+@pytest.fixture(scope="module")
+def exported_csg(tmp_path_factory):
+    out = tmp_path_factory.mktemp("openscad_csg")
+    files = {}
+    for scad in sorted(EXAMPLES.glob("*/*.scad")):
+        rel = f"{scad.parent.name}/{scad.name}"
+        files[rel] = _export(scad, out / (scad.stem + ".csg"))
+    return files
+
+
+@needs_openscad
+def test_examples_load_or_refuse_by_name(exported_csg):
+    loaded, refused = [], []
+    for rel, path in exported_csg.items():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", OpenSCADWarning)
+            try:
+                openscad.load(path)
+                loaded.append(rel)
+            except FormatError as e:
+                msg = str(e)
+                assert msg.startswith(str(path)), msg
+                assert re.search(r"is not supported|unknown node|the model is empty", msg), msg
+                refused.append((rel, msg))
+    assert set(COMPARED) <= set(loaded), (loaded, refused)
+    assert len(loaded) >= 10
+    # skipping unsupported nodes loads everything that has 3D geometry left
+    for rel, msg in refused:
+        if "is not supported" in msg:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", OpenSCADWarning)
+                try:
+                    openscad.load(exported_csg[rel], on_unsupported="skip")
+                except FormatError as e:
+                    assert "empty" in str(e)
+
+
+def _stl_scene(path):
+    import mitsuba as mi
+    from mitsuba_csg.mesh import read_stl
+    verts, faces = read_stl(path)
+    tri = verts[faces]
+    volume = float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6)
+    area = float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum() / 2)
+    shape = mi.Mesh("openscad", len(verts), len(faces))
+    params = mi.traverse(shape)
+    params["vertex_positions"] = mi.Float(np.ascontiguousarray(verts.astype(np.float32).ravel()))
+    params["faces"] = mi.UInt32(np.ascontiguousarray(faces.astype(np.uint32).ravel()))
+    params.update()
+    return mi.load_dict({"type": "scene", "m": shape}), volume, area
+
+
+def _mesh_hits(scene, o, d):
+    import mitsuba as mi
+    ray = mi.Ray3f(mi.Point3f(*np.ascontiguousarray(o.T, np.float32)),
+                   mi.Vector3f(*np.ascontiguousarray(d.T, np.float32)))
+    si = scene.ray_intersect(ray)
+    t = np.array(si.t, dtype=np.float64)
+    t[~np.array(si.is_valid(), dtype=bool)] = np.inf
+    return t
+
+
+@needs_openscad
+@pytest.mark.parametrize("rel", COMPARED)
+def test_example_agrees_with_openscad_stl(rel, tmp_path):
+    scad = EXAMPLES / rel
+    model = openscad.load(_export(scad, tmp_path / "m.csg"))
+    scene, mesh_volume, mesh_area = _stl_scene(_export(scad, tmp_path / "m.stl", "binstl"))
+    lo, hi = (np.asarray(b, float) for b in model.bounds())
+    size = float(np.max(hi - lo))
+    # OpenSCAD's default facets ($fa = 12 degrees, $fs = 2): at most 30 segments per circle, a
+    # sagitta of r (1 - cos 6 deg) = 0.55 % of r; small circles get as few as 5 segments.
+    tol = 0.03 * size
+
+    rng = np.random.default_rng(7)
+    n = 2000
+    centre, radius = 0.5 * (lo + hi), 1.5 * float(np.linalg.norm(hi - lo))
+    o = rng.normal(size=(n, 3))
+    o = centre + o * (radius / np.linalg.norm(o, axis=1, keepdims=True))
+    d = rng.uniform(lo, hi, size=(n, 3)) - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    hits = csg.trace(model, o, d)
+    t_exact = hits.t.astype(np.float64)
+    # Skip rays near silhouettes and edges: jittered copies must see the same thing.
+    helper = np.where(np.abs(d[:, :1]) < 0.6, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(d, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(d, u)
+    stable = np.ones(n, bool)
+    for shift in (u, -u, v, -v):
+        t_j = csg.trace(model, o + 0.02 * size * shift, d).t.astype(np.float64)
+        same = (np.isinf(t_j) == np.isinf(t_exact)) & \
+               (np.isinf(t_exact) | (np.abs(np.where(np.isinf(t_j), 0, t_j) - np.where(np.isinf(t_exact), 0, t_exact)) < 2 * tol))
+        stable &= same
+    cos = np.abs(np.einsum("ij,ij->i", hits.normal.astype(np.float64), d))
+    stable &= np.isinf(t_exact) | (cos > 0.2)
+    t_mesh = _mesh_hits(scene, o, d)
+    both_miss = np.isinf(t_exact) & np.isinf(t_mesh)
+    close = np.isfinite(t_exact) & np.isfinite(t_mesh) & \
+        (np.abs(t_exact - t_mesh) <= tol / np.maximum(cos, 0.2))
+    agree = both_miss | close
+    compared = int(stable.sum())
+    assert compared >= 0.5 * n, f"{rel}: only {compared} of {n} rays away from silhouettes"
+    assert np.isfinite(t_exact[stable]).sum() >= 0.2 * compared, f"{rel}: too few hits to compare"
+    rate = agree[stable].mean()
+    assert rate >= 0.97, (f"{rel}: {rate:.3f} of {compared} stable rays agree with OpenSCAD's STL "
+                          f"(tol {tol:g}); first disagreements t_exact/t_mesh: "
+                          f"{list(zip(t_exact[stable & ~agree][:5], t_mesh[stable & ~agree][:5]))}")
+
+    # Volumes differ by at most the surface area times the gap between the exact and the
+    # faceted surface: 30 segments per circle leave a sagitta of 0.55 % of r <= size / 2;
+    # OpenSCAD's sphere rings are offset from the poles, so allow twice that.
+    volume, err = mc_volume(model, lo, hi)
+    gap = 0.0055 * size
+    assert mesh_volume > 0
+    assert abs(volume - mesh_volume) <= mesh_area * gap + 4 * err, \
+        f"{rel}: exact volume {volume:g} +- {err:g} vs OpenSCAD's facets {mesh_volume:g} (area {mesh_area:g})"
+    print(f"{rel}: rays {rate:.3f} of {compared}; volume exact {volume:.6g} +- {err:.2g}, facets {mesh_volume:.6g}, "
+          f"allowed {mesh_area * gap + 4 * err:.3g}")
