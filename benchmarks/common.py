@@ -10,7 +10,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
+# Tests redirect the JSON files with MITSUBA_CSG_BENCH_RESULTS, so smoke runs never overwrite results.
+RESULTS = Path(os.environ.get("MITSUBA_CSG_BENCH_RESULTS", ROOT / "benchmarks" / "results"))
 sys.path.insert(0, str(ROOT))
 
 

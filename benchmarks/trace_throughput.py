@@ -67,6 +67,22 @@ def measure(prepared, o, d, repeats):
                     "unfinished": int((~h.finished.numpy()).sum())}
 
 
+def path_frame(model, width, height, repeats) -> float:
+    """Seconds of a full csg_path frame at 1 spp (floor, sky and sun; warm kernels)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    import mitsuba_csg as csg
+    from mitsuba_csg.cli import model_scene_dict
+    scene = mi.load_dict(model_scene_dict(mi, csg, model, width, height, 1, "csg_path"))
+
+    def run():
+        image = mi.render(scene, spp=1)
+        dr.eval(image)
+        dr.sync_thread()
+    return common.best_of(run, repeats)["min_s"]
+
+
 def cold_compile(scene: str, size: str) -> dict:
     """First trace in a fresh process with an empty Dr.Jit kernel cache, then with a warm one.
 
@@ -119,6 +135,7 @@ def main(argv=None):
     parser.add_argument("--size", default="1280x720")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-compile", action="store_true", help="skip the cold-compile measurement")
+    parser.add_argument("--no-path", action="store_true", help="skip the csg_path frame")
     parser.add_argument("--name", default="trace_throughput")
     args = parser.parse_args(argv)
     import mitsuba_csg as csg
@@ -151,12 +168,14 @@ def main(argv=None):
             rows.append(results[label])
         if "min_s" in results["-"] and "min_s" in results["+"]:
             results["+"]["speedup"] = results["-"]["min_s"] / results["+"]["min_s"]
+        if not args.no_path:
+            results["+"]["path_1spp_s"] = path_frame(model, width, height, max(1, args.repeats - 1))
         if not args.no_compile:
             results["+"].update(cold_compile(scene, args.size))
     columns = [("scene", "scene", "s"), ("tree", "tree", "s"), ("primitives", "prims", "d"), ("depth", "depth", "d"),
                ("fps", "fps", ".2f"), ("mrays_s", "Mrays/s", ".2f"), ("median_mrays_s", "median", ".2f"),
                ("mean_steps", "steps/ray", ".1f"), ("max_steps", "max steps", "d"), ("speedup", "+/-", ".1f"),
-               ("compile_s", "compile s", ".2f"), ("first_trace_cold_s", "1st trace s", ".2f"),
+               ("path_1spp_s", "path 1spp s", ".2f"), ("compile_s", "compile s", ".2f"), ("first_trace_cold_s", "1st trace s", ".2f"),
                ("unfinished", "unfinished", "d"), ("note", "note", "s")]
     print(f"{width}x{height} primary rays, {common.machine()['cpu']}, {os.cpu_count()} cores")
     print(common.table(rows, columns))

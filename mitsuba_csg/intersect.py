@@ -85,6 +85,8 @@ def _cone(b, o, d, param):
     qb = 2.0 * (o.x * d.x + o.y * d.y - c * d.z * r_o)
     qc = o.x * o.x + o.y * o.y - r_o * r_o
     disc = qb * qb - 4.0 * qa * qc
+    # A ray through the apex has disc = 0 exactly; rounding must not turn it into a miss.
+    real = disc >= -1e-5 * (qb * qb + dr.abs(4.0 * qa * qc))
     sq = dr.sqrt(dr.maximum(disc, 0.0))
     q = -0.5 * (qb + dr.copysign(sq, qb))          # stable roots; qa == 0 gives the linear root
     roots = (q / qa, qc / q)
@@ -94,7 +96,7 @@ def _cone(b, o, d, param):
     candidates = []
     for t in roots:
         z = o.z + t * d.z
-        ok = (disc >= 0) & (dr.abs(z) <= 1.0 + _RIM_SLACK) & (a + c * z >= -_RIM_SLACK) & dr.isfinite(t)
+        ok = real & (dr.abs(z) <= 1.0 + _RIM_SLACK) & (a + c * z >= -_RIM_SLACK) & dr.isfinite(t)
         candidates.append((t, ok, 0))
     for face, zc, rc in ((1, -1.0, p0), (2, 1.0, p1)):
         t = (zc - o.z) / d.z

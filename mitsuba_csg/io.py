@@ -5,14 +5,15 @@ from pathlib import Path
 
 from .errors import CSGError
 
-SUPPORTED = {".json": "mitsuba-csg native JSON", ".csg": "OpenSCAD .csg"}
-PLANNED = {".gdml": "Geant4 GDML"}
+SUPPORTED = {".json": "mitsuba-csg native JSON", ".csg": "OpenSCAD .csg", ".gdml": "Geant4 GDML"}
+PLANNED: dict[str, str] = {}
 
 
 def load(path, **options):
-    """Load a model from `path`; the extension picks the format (`.json`, `.csg`).
+    """Load a model from `path`; the extension picks the format (`.json`, `.csg`, `.gdml`).
 
-    Options go to the format's loader (e.g. `on_unsupported="skip"` for OpenSCAD).
+    Options go to the format's loader: `on_unsupported="skip"` (OpenSCAD, GDML) and, for
+    GDML, `solid="name"` (one solid in its own frame), `depth=k`, `show_world=True`.
     """
     suffix = Path(path).suffix.lower()
     if suffix == ".json":
@@ -21,6 +22,9 @@ def load(path, **options):
     if suffix == ".csg":
         from . import openscad
         return openscad.load(path, **options)
+    if suffix == ".gdml":
+        from . import gdml
+        return gdml.load(path, **options)
     if suffix in PLANNED:
         raise CSGError(f"{path}: {PLANNED[suffix]} files are not supported yet; supported: "
                        f"{', '.join(SUPPORTED)}")

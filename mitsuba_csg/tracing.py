@@ -78,8 +78,9 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf")) -> RayHits
     b = tree.b
     o, d = b.Array3f(dr.detach(o)), b.Array3f(dr.detach(d))
     n = dr.width(o)
-    tmin = dr.full(b.Float, tmin, n) if isinstance(tmin, (int, float)) else b.Float(dr.detach(tmin))
-    tmax = dr.full(b.Float, tmax, n) if isinstance(tmax, (int, float)) else b.Float(dr.detach(tmax))
+    # Opaque: a literal would be compiled into the kernel, and every new value would recompile it.
+    tmin = dr.opaque(b.Float, tmin, n) if isinstance(tmin, (int, float)) else b.Float(dr.detach(tmin))
+    tmax = dr.opaque(b.Float, tmax, n) if isinstance(tmax, (int, float)) else b.Float(dr.detach(tmax))
     t, leaf, info, finished, steps = traverse(tree, o, d, tmin, tmax)
     hit = leaf != NO_LEAF
     _, prim, _, _ = node_record(b, tree, leaf, hit)

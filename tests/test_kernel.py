@@ -309,3 +309,26 @@ def test_tree_too_deep_is_refused():
         m = (m | csg.Sphere(0.5).translate((i * 0.01, 0, 0))) if i % 2 else (m - csg.Box(0.1).translate((0, i * 0.01, 3)))
     with pytest.raises(csg.TreeTooDeepError, match="optimize"):
         csg.prepare(m, optimize=False)
+
+
+def test_ray_through_a_cone_apex_from_inside():
+    # Along the axis the side quadratic has a double root at the apex; rounding made it a miss.
+    cone = csg.Cone(0.0, 34.64, 20.0)
+    for z in (-9.99, -9.0, -5.0):
+        h = csg.trace(cone, [[0, 0, z]], [[0, 0, 1.0]])
+        assert h.t[0] == pytest.approx(10.0 - z, rel=1e-5) and not h.entering[0]
+    h = csg.trace(cone, [[0, 0, -30.0]], [[0, 0, 1.0]])
+    assert h.t[0] == pytest.approx(20.0, rel=1e-5) and h.entering[0]
+
+
+def test_new_tmin_values_do_not_recompile():
+    import drjit as dr
+    prepared = csg.prepare(csg.Sphere(1.0) - csg.Box(0.5))
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    csg.trace(prepared, [[0, 0, -5]], [[0, 0, 1.0]], tmin=0.01)
+    dr.kernel_history()                                   # clear
+    for k in range(3):
+        csg.trace(prepared, [[0, 0, -5]], [[0, 0, 1.0]], tmin=0.1 + 0.1 * k)
+    history = [h for h in dr.kernel_history() if h.get("operation_count", 0) > 500]
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert history and all(h["cache_hit"] for h in history)

@@ -1,0 +1,45 @@
+"""Every generator and benchmark script runs at a tiny size, so none of them can rot."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import mitsuba_csg as csg
+from mitsuba_csg import generators
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("make, prims", [
+    (lambda: generators.cheese(10), 11),
+    (lambda: generators.city(3), 30),
+    (lambda: generators.satellites(3), 42),
+    (lambda: generators.sphere_chain(5), 5),
+])
+def test_generators(make, prims):
+    model = make()
+    assert len(model.leaves()) == prims
+    lo, hi = model.bounds()
+    hits = csg.trace(model, [0.5 * (lo + hi) - [0, 0, 100]], [[0, 0, 1.0]])
+    assert hits.unfinished == 0
+
+
+@pytest.mark.parametrize("script, args", [
+    ("trace_throughput.py", ["--scenes", "cheese-500", "--size", "32x18", "--repeats", "1", "--no-compile"]),
+    ("optimizer_scaling.py", ["--sizes", "100", "--size", "32x18"]),
+    ("mesh_route.py", ["--scenes", "cheese-500", "--size", "32x18", "--repeats", "1", "--segments", "8"]),
+    ("accuracy.py", ["--models", "2", "--rays", "16"]),
+])
+def test_benchmark_scripts(script, args, tmp_path):
+    env = {**__import__("os").environ, "MITSUBA_CSG_BENCH_RESULTS": str(tmp_path)}
+    run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args], capture_output=True, text=True,
+                         cwd=ROOT / "benchmarks", env=env, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    written = list(tmp_path.glob("*.json"))
+    assert len(written) == 1
+    payload = json.loads(written[0].read_text())
+    assert payload["rows"] and "machine" in payload
