@@ -89,7 +89,8 @@ def _cone(b, o, d, param):
     real = disc >= -1e-5 * (qb * qb + dr.abs(4.0 * qa * qc))
     sq = dr.sqrt(dr.maximum(disc, 0.0))
     q = -0.5 * (qb + dr.copysign(sq, qb))          # stable roots; qa == 0 gives the linear root
-    roots = (q / qa, qc / q)
+    # disc <= 0 within rounding: one double root (its two formulas would disagree).
+    roots = (q / qa, dr.select(disc > 0, qc / q, q / qa))
     near, far = dr.full(b.Float, dr.inf, dr.width(qa)), dr.full(b.Float, -dr.inf, dr.width(qa))
     near_face = dr.zeros(b.UInt32, dr.width(qa))
     far_face = dr.zeros(b.UInt32, dr.width(qa))
