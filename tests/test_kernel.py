@@ -327,8 +327,10 @@ def test_new_tmin_values_do_not_recompile():
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     csg.trace(prepared, [[0, 0, -5]], [[0, 0, 1.0]], tmin=0.01)
     dr.kernel_history()                                   # clear
-    for k in range(3):
+    for k in range(4):
         csg.trace(prepared, [[0, 0, -5]], [[0, 0, 1.0]], tmin=0.1 + 0.1 * k)
     history = [h for h in dr.kernel_history() if h.get("operation_count", 0) > 500]
     dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert history and all(h["cache_hit"] for h in history)
+    # One traversal kernel per call; a value baked into the kernel would miss the cache each time.
+    assert len(history) == 4 and sum(not h["cache_hit"] for h in history) <= 1, [
+        {k: h.get(k) for k in ("cache_hit", "cache_disk", "operation_count", "size")} for h in history]
