@@ -170,6 +170,8 @@ def main(argv=None):
             results["+"]["speedup"] = results["-"]["min_s"] / results["+"]["min_s"]
         if not args.no_path:
             results["+"]["path_1spp_s"] = path_frame(model, width, height, max(1, args.repeats - 1))
+        print(f"  {scene}: - {results['-'].get('mrays_s', 0):.2f}  + {results['+'].get('mrays_s', 0):.2f} Mrays/s",
+              flush=True)
         if not args.no_compile:
             results["+"].update(cold_compile(scene, args.size))
     columns = [("scene", "scene", "s"), ("tree", "tree", "s"), ("primitives", "prims", "d"), ("depth", "depth", "d"),

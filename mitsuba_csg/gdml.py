@@ -63,7 +63,7 @@ import numpy as np
 from . import transform as tf
 from .errors import ModelError
 from .model import Node, Operation
-from .native import FormatError
+from .native import FormatError, read_model_bytes
 from .primitives import Box, Cone, ConvexPolyhedron, Cylinder, Sphere, Torus
 
 __all__ = ["FormatError", "UNITS", "load", "loads"]
@@ -1073,14 +1073,7 @@ def load(path, *, solid: str | None = None, depth: int | None = None, show_world
     `on_unsupported` is "error" (FormatError) or "skip" (warn and leave the solid out).
     """
     path = os.fspath(path)
+    data, _ = read_model_bytes(path, MAX_FILE_BYTES)
     source = os.path.basename(path) or path
-    try:
-        size = os.path.getsize(path)
-        if size > MAX_FILE_BYTES:
-            raise FormatError(f"{source}: larger than {MAX_FILE_BYTES} bytes")
-        with open(path, "rb") as f:
-            data = f.read()
-    except OSError as e:
-        raise FormatError(f"{path}: cannot read: {e.strerror or e}") from None
     return loads(data, source, base_dir=os.path.dirname(os.path.abspath(path)), solid=solid, depth=depth,
                  show_world=show_world, on_unsupported=on_unsupported)

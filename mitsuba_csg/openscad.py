@@ -46,7 +46,7 @@ import numpy as np
 from . import transform as tf
 from .errors import ModelError
 from .model import DIFFERENCE, INTERSECTION, UNION, Node, Operation
-from .native import FormatError
+from .native import FormatError, read_model_bytes
 from .primitives import Box, Cone, ConvexPolyhedron, Sphere
 
 MAX_FILE_BYTES = 256 * 2 ** 20     # refuse larger files before reading them
@@ -726,17 +726,5 @@ def load(path, *, on_unsupported: str = "error") -> Node:
     `on_unsupported="error"` (default) refuses 2D, extrusion and other unsupported nodes with
     a FormatError naming the node and line; `"skip"` drops them with an OpenSCADWarning.
     """
-    source = os.fsdecode(path) if isinstance(path, (str, bytes, os.PathLike)) else repr(path)
-    try:
-        size = os.stat(path).st_size
-        if size > MAX_FILE_BYTES:
-            raise FormatError(f"{source}: {size} bytes is larger than the limit of {MAX_FILE_BYTES}")
-        with open(path, "rb") as f:
-            raw = f.read(MAX_FILE_BYTES + 1)
-    except FileNotFoundError:
-        raise FormatError(f"{source}: no such file") from None
-    except IsADirectoryError:
-        raise FormatError(f"{source}: is a directory, not a model file") from None
-    except (OSError, TypeError, ValueError) as e:
-        raise FormatError(f"{source}: cannot read the file ({getattr(e, 'strerror', None) or e})") from None
+    raw, source = read_model_bytes(path, MAX_FILE_BYTES)
     return loads(raw, source, on_unsupported=on_unsupported)

@@ -132,19 +132,28 @@ def _nary_bounds(kind, prim, neg, children, prim_lower, prim_upper):
 
 # ---- Phase 2: SAH over every treelet ----
 
-def _sah_treelets(kind, children, lower, upper, negative, leaves):
-    """Binary nodes (op, left, right) replacing every n-ary node; refs to n-ary ids are ~id."""
+def _sah_treelets(kind, children, lower, upper, negative, leaves, spatial: bool = True):
+    """Binary nodes (op, left, right) replacing every n-ary node; refs to n-ary ids are ~id.
+
+    `spatial=False` keeps operand order (balanced in input order) instead of SAH.
+    """
     ops = np.flatnonzero(kind != L.K_LEAF)
     counts = np.array([len(children[i]) for i in ops], np.int64)
     items = np.concatenate([np.asarray(children[i], np.int64) for i in ops]) if len(ops) else np.zeros(0, np.int64)
     owner = np.repeat(ops, counts)
-    item_lower, item_upper = lower[items].copy(), upper[items].copy()
-    # Inside an intersection, a complemented operand only matters where the bounded ones reach.
-    clip = (kind[owner] == _I) & negative[items] & ~negative[owner]
-    item_lower[clip] = np.maximum(item_lower[clip], lower[owner[clip]])
-    item_upper[clip] = np.minimum(item_upper[clip], upper[owner[clip]])
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-    left, right, roots = sah.build(item_lower, item_upper, leaves[items], starts, counts)
+    if spatial:
+        item_lower, item_upper = lower[items].copy(), upper[items].copy()
+        # Inside an intersection, a complemented operand only matters where the bounded ones reach.
+        clip = (kind[owner] == _I) & negative[items] & ~negative[owner]
+        item_lower[clip] = np.maximum(item_lower[clip], lower[owner[clip]])
+        item_upper[clip] = np.minimum(item_upper[clip], upper[owner[clip]])
+        weight = leaves[items]
+    else:
+        # Items on a line in input order: the builder's median split then keeps input order.
+        item_lower = item_upper = np.arange(len(items), dtype=np.float64)[:, None].repeat(3, 1)
+        weight = np.ones(len(items))
+    left, right, roots = sah.build(item_lower, item_upper, weight, starts, counts)
     # Internal node i belongs to the set it was split from; find each node's operation.
     node_op = np.empty(len(left), np.int64)
     node_op[roots] = kind[ops]
@@ -395,10 +404,8 @@ def optimize(model, *, spatial: bool = True, minimize_height: bool = True, gener
     if kind[0] == L.K_LEAF:
         root = tree.add(L.K_LEAF, prim=int(prim[0]), neg=bool(neg[0]))
     else:
-        if spatial:
-            node_op, b_left, b_right, treelet_root = _sah_treelets(kind, children, lower, upper, negative, leaves)
-        else:
-            node_op, b_left, b_right, treelet_root = _input_order_treelets(kind, children)
+        node_op, b_left, b_right, treelet_root = _sah_treelets(kind, children, lower, upper, negative, leaves,
+                                                               spatial)
         root = _assemble(tree, kind, prim, neg, node_op, b_left, b_right, treelet_root)
     seconds["spatial"] = time.perf_counter() - t0
 
@@ -424,29 +431,6 @@ def optimize(model, *, spatial: bool = True, minimize_height: bool = True, gener
         "seconds_total": sum(seconds.values()),
     }
     return OptimizedModel(model, flat), stats
-
-
-def _input_order_treelets(kind, children):
-    """Balanced binary treelets in operand order (the optimizer without SAH)."""
-    ops = np.flatnonzero(kind != L.K_LEAF)
-    counts = np.array([len(children[i]) for i in ops], np.int64)
-    items = np.concatenate([np.asarray(children[i], np.int64) for i in ops])
-    # Items on a line in input order: the median split of `sah.build` keeps input order.
-    position = np.arange(len(items), dtype=np.float64)[:, None].repeat(3, 1)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-    left, right, roots = sah.build(position, position, np.ones(len(items)), starts, counts)
-    node_op = np.empty(len(left), np.int64)
-    node_op[roots] = kind[ops]
-    frontier = roots
-    while len(frontier):
-        kids = np.concatenate([left[frontier], right[frontier]])
-        ops_of = np.concatenate([node_op[frontier], node_op[frontier]])
-        node_op[kids[kids >= 0]] = ops_of[kids >= 0]
-        frontier = kids[kids >= 0]
-    ref = lambda r: np.where(r >= 0, r, ~items[np.where(r < 0, -r - 1, 0)])  # noqa: E731
-    treelet_root = np.full(len(kind), -1, np.int64)
-    treelet_root[ops] = roots
-    return node_op, ref(left), ref(right), treelet_root
 
 
 def _assemble(tree: _Tree, kind, prim, neg, node_op, b_left, b_right, treelet_root) -> int:

@@ -33,6 +33,7 @@ def test_generators(make, prims):
     ("optimizer_scaling.py", ["--sizes", "100", "--size", "32x18"]),
     ("mesh_route.py", ["--scenes", "cheese-500", "--size", "32x18", "--repeats", "1", "--segments", "8"]),
     ("accuracy.py", ["--models", "2", "--rays", "16"]),
+    ("scaling.py", ["--quick"]),
 ])
 def test_benchmark_scripts(script, args, tmp_path):
     env = {**__import__("os").environ, "MITSUBA_CSG_BENCH_RESULTS": str(tmp_path)}

@@ -1,0 +1,104 @@
+"""Write docs/benchmarks.md from the JSON files in benchmarks/results/.
+
+    ./run.sh bench report.py
+"""
+from __future__ import annotations
+
+import json
+
+import common
+
+PAPER_GTX680 = {  # Table 2 of Bogolepov et al. 2013: GTX 680 frames/s, '-' and '+'
+    "city-3385": (51, 57), "city-343k": (8, 22), "city-987k": (8.3, 21), "cheese-500": (11.2, 211),
+    "cheese-1000": (5.8, 128), "cheese-8000": (0.5, 32), "cheese-32000": (None, 4),
+    "satellites-87.5k": (29, 65), "satellites-1.12M": (7, 15),
+}
+
+
+def load(name):
+    path = common.RESULTS / f"{name}.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def fmt(v, spec):
+    return "-" if v is None else format(v, spec)
+
+
+def main():
+    out = ["# Benchmarks", "",
+           "Numbers from the scripts in `benchmarks/` (each prints a table and writes JSON to "
+           "`benchmarks/results/`); this page is written by `./run.sh bench report.py`. "
+           "Ratios compare variants measured in the same run. Timings on this shared 2-core machine vary "
+           "by up to 2x between runs; the minimum of several runs is reported.", ""]
+    t2 = load("table2")
+    if t2:
+        m = t2["machine"]
+        out += ["## Table 2 of the paper, reproduced", "",
+                f"Machine: {m['cpu']}, {m['cores']} cores, Mitsuba {m['mitsuba']}, Dr.Jit {m['drjit']}, "
+                f"variant `{m['variant']}`, {m['date']}. Command: "
+                "`./run.sh bench trace_throughput.py --scenes paper --no-compile --repeats 2`.", "",
+                "1280x720 primary rays (one per pixel, no shading). '-': the input tree with chains of one "
+                "operation balanced in input order; '+': optimized (paper §4). 'path' is a full `csg_path` "
+                "frame at 1 spp (camera, sun shadow ray, one bounce) on the optimized tree.", "",
+                "| scene | prims | depth - / + | fps - | fps + | Mrays/s + | steps/ray + | +/- | path 1spp s | "
+                "GTX 680 fps - / + (paper) |",
+                "|---|---|---|---|---|---|---|---|---|---|"]
+        rows = t2["rows"]
+        for scene in dict.fromkeys(r["scene"] for r in rows):
+            minus = next(r for r in rows if r["scene"] == scene and r["tree"] == "-")
+            plus = next(r for r in rows if r["scene"] == scene and r["tree"] == "+")
+            paper = PAPER_GTX680.get(scene, (None, None))
+            out.append(f"| {scene} | {plus['primitives']} | {minus['depth']} / {plus['depth']} | "
+                       f"{fmt(minus.get('fps'), '.2f') if 'fps' in minus else minus.get('note', '-')} | "
+                       f"{fmt(plus.get('fps'), '.2f')} | {fmt(plus.get('mrays_s'), '.2f')} | "
+                       f"{fmt(plus.get('mean_steps'), '.0f')} | {fmt(plus.get('speedup'), '.1f')} | "
+                       f"{fmt(plus.get('path_1spp_s'), '.2f')} | {fmt(paper[0], 'g')} / {fmt(paper[1], 'g')} |")
+        out.append("")
+    tt = load("trace_throughput")
+    if tt:
+        out += ["## Kernel compile time", "",
+                "`./run.sh bench trace_throughput.py` (cold: a fresh process with an empty Dr.Jit kernel cache; "
+                "LLVM compile time from Dr.Jit's kernel history).", "",
+                "| scene | kernel ops | LLVM compile s (cold) | first trace s (cold) | first trace s (warm cache) |",
+                "|---|---|---|---|---|"]
+        for r in tt["rows"]:
+            if "compile_s" in r:
+                out.append(f"| {r['scene']} | {r['kernel_ops']} | {r['compile_s']:.2f} | {r['first_trace_cold_s']:.2f} | "
+                           f"{r['first_trace_warm_cache_s']:.2f} |")
+        out.append("")
+    opt = load("optimizer_scaling")
+    if opt:
+        out += ["## Optimizer scaling (City)", "", "`./run.sh bench optimizer_scaling.py`", "",
+                "| prims | build model s | optimize s | height input / lowered / optimized | nodes before / after | "
+                "trace Mrays/s (1280x720, optimized) | peak RSS GB |", "|---|---|---|---|---|---|---|"]
+        for r in opt["rows"]:
+            out.append(f"| {r['primitives']} | {r['build_model_s']:.1f} | {r['optimize_s']:.1f} | "
+                       f"{r['height_input']} / {r['height_before']} / {r['height_after']} | "
+                       f"{r['nodes_before']} / {r['nodes_after']} | {fmt(r.get('mrays_s'), '.2f')} | "
+                       f"{r['peak_rss_gb']:.1f} |")
+        out.append("")
+    mesh = load("mesh_route")
+    if mesh:
+        out += ["## Versus the mesh route", "",
+                f"`./run.sh bench mesh_route.py` (segments={mesh['args']['segments']}): manifold3d booleans, "
+                "Mitsuba scene build (Embree BVH), Embree primary rays at 1280x720, against optimize + CSG primary rays.",
+                "", "| scene | prims | mesh triangles | booleans s | scene build s | Embree s/frame | optimize s | "
+                "CSG s/frame | CSG / Embree per frame | first frame: mesh s / CSG s |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in mesh["rows"]:
+            out.append(f"| {r['scene']} | {r['primitives']} | {r['triangles']} | {r['boolean_s']:.2f} | "
+                       f"{r['scene_build_s']:.2f} | {r['embree_s']:.3f} | {r['csg_prepare_s']:.2f} | "
+                       f"{r['csg_trace_s']:.3f} | {r['trace_ratio']:.1f} | {r['mesh_first_frame_s']:.2f} / "
+                       f"{r['csg_first_frame_s']:.2f} |")
+        out.append("")
+    if (common.ROOT / "docs" / "images" / "scaling.png").exists():
+        out += ["## Scaling", "", "`./run.sh bench scaling.py`: optimized trace time against primitive count "
+                "(640x360) and against image size (Cheese-1000).", "", "![scaling](images/scaling.png)", ""]
+    acc = load("accuracy")
+    if acc:
+        out += ["## Accuracy", "", "See `docs/accuracy.md` (`./run.sh bench accuracy.py`).", ""]
+    (common.ROOT / "docs" / "benchmarks.md").write_text("\n".join(out))
+    print("wrote docs/benchmarks.md")
+
+
+if __name__ == "__main__":
+    main()
