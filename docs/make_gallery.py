@@ -70,6 +70,7 @@ def main():
         t0 = time.perf_counter()
         image = mi.render(scene)
         dr.eval(image)
+        dr.sync_thread()          # kernels run asynchronously: wait before reading the clock
         seconds = time.perf_counter() - t0
         mi.util.write_bitmap(str(HERE / "images" / f"gallery_{name}.png"), image)
         lines += [f"## {caption}", "", f"![{name}](images/gallery_{name}.png)", "",

@@ -116,6 +116,7 @@ def _render(args) -> int:
     for i, spp in enumerate(spp_per_pass):
         image = mi.render(scene, spp=spp, seed=i)
         dr.eval(image)
+        dr.sync_thread()          # kernels run asynchronously: wait, so progress and time are real
         total = image * spp if total is None else total + image * spp
         _progress(i + 1, passes, time.perf_counter() - t0)
     image = total / float(args.spp)
