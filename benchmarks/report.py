@@ -31,14 +31,17 @@ def main():
            "Ratios compare variants measured in the same run. Timings on this shared 2-core machine vary "
            "by up to 2x between runs; the minimum of several runs is reported.", ""]
     t2 = load("table2")
+    large = load("table2_large")          # the 1M-primitive rows, run separately (they take minutes)
+    if t2 and large:
+        t2 = dict(t2, rows=t2["rows"] + large["rows"])
     if t2:
         m = t2["machine"]
         out += ["## Table 2 of the paper, reproduced", "",
                 f"Machine: {m['cpu']}, {m['cores']} cores, Mitsuba {m['mitsuba']}, Dr.Jit {m['drjit']}, "
                 f"variant `{m['variant']}`, {m['date']}. Command: "
-                "`./run.sh bench trace_throughput.py --scenes " + ",".join(dict.fromkeys(r["scene"] for r in t2["rows"]))
-                + " --no-compile --repeats 2 --name table2` (`--scenes paper` adds the 987K City and 1.12M "
-                "Satellites; a 1M City is in the optimizer table below).", "",
+                "`./run.sh bench trace_throughput.py --scenes <scenes> --no-compile --repeats 2 --name table2` "
+                "(and `--name table2_large --no-path` for the two largest scenes); `--scenes paper` runs all "
+                "nine in one go (about half an hour here).", "",
                 "1280x720 primary rays (one per pixel, no shading). '-': the input tree with chains of one "
                 "operation balanced in input order; '+': optimized (paper §4). 'path' is a full `csg_path` "
                 "frame at 1 spp (camera, sun shadow ray, one bounce) on the optimized tree.", "",

@@ -171,7 +171,7 @@ def _info(args) -> int:
     print(f"{args.model}")
     print(f"  primitives   {len(leaves)}: " + ", ".join(f"{n} {k}" for k, n in sorted(kinds.items())))
     print("  operations   " + (", ".join(f"{n} {k}" for k, n in sorted(ops.items())) or "none"))
-    print(f"  materials    " + (", ".join(f"{k} ({n})" for k, n in sorted(materials.items())) or "none"))
+    print("  materials    " + (", ".join(f"{k} ({n})" for k, n in sorted(materials.items())) or "none"))
     print(f"  bounds       {lower.round(6).tolist()} .. {upper.round(6).tolist()}")
     print(f"  height       input {stats['height_input']}, lowered {stats['height_before']}, "
           f"optimized {stats['height_after']}")

@@ -28,7 +28,7 @@ import numpy as np
 
 from . import lowering as L
 from . import sah
-from .model import DIFFERENCE, INTERSECTION, UNION, Node
+from .model import DIFFERENCE, UNION, Node
 
 _U, _I = L.K_UNION, L.K_INTERSECTION
 

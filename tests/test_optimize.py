@@ -104,13 +104,18 @@ def test_left_deep_union_becomes_logarithmic(n):
     assert stats["height_after"] <= 2 * math.ceil(math.log2(n)) + 2, stats
 
 
-def test_type2_distribution_duplicates_and_keeps_indices():
-    # T1 & (T2 | (T3 & (T4 | (T5 & ...)))) cannot be flattened; distributions shorten it.
-    rng = np.random.default_rng(8)
-    parts = [csg.Sphere(float(r)).translate(c) for c, r in zip(rng.uniform(-1, 1, (24, 3)), rng.uniform(0.6, 1.2, 24))]
+def _interleaved(n=24, seed=8):
+    """T1 | (T2 & (T3 | (T4 & ...))): interleaved operations cannot be flattened."""
+    rng = np.random.default_rng(seed)
+    parts = [csg.Sphere(float(r)).translate(c) for c, r in zip(rng.uniform(-1, 1, (n, 3)), rng.uniform(0.6, 1.2, n))]
     m = parts[-1]
     for i, p in enumerate(reversed(parts[:-1])):
         m = (p & m) if i % 2 else (p | m)
+    return m
+
+
+def test_type2_distribution_duplicates_and_keeps_indices():
+    m = _interleaved()
     opt, stats = csg.optimize(m, max_growth=2.0)
     assert stats["leaves_duplicated"] > 0
     assert stats["height_after"] < stats["height_before"]
@@ -122,11 +127,7 @@ def test_type2_distribution_duplicates_and_keeps_indices():
 
 
 def test_growth_budget_is_respected():
-    rng = np.random.default_rng(8)
-    parts = [csg.Sphere(float(r)).translate(c) for c, r in zip(rng.uniform(-1, 1, (24, 3)), rng.uniform(0.6, 1.2, 24))]
-    m = parts[-1]
-    for i, p in enumerate(reversed(parts[:-1])):
-        m = (p & m) if i % 2 else (p | m)
+    m = _interleaved()
     _, none = csg.optimize(m, max_growth=0.0)
     assert none["leaves_duplicated"] == 0
     _, some = csg.optimize(m, max_growth=0.1)
