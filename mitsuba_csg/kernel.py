@@ -173,7 +173,7 @@ def _leaf_hit(b, tree, flags, prim, o, d, t_start):
 
 @dr.syntax
 def traverse(tree: KernelTree, o, d, tmin, tmax):
-    """Run the automaton. Returns (t, leaf node, info, finished) per lane, all detached."""
+    """Run the automaton. Returns (t, leaf node, info, finished, steps) per lane, all detached."""
     b = tree.b
     n = dr.width(o.x)
     inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
