@@ -10,6 +10,17 @@ from pathlib import Path
 MODEL_SUFFIXES = (".json", ".gdml", ".csg")
 
 
+def builtin_models():
+    """The paper's scenes by name (`mitsuba-csg render city-3385`), built by the generators."""
+    from . import generators as g
+    return {
+        "cheese-500": lambda: g.cheese(500), "cheese-1000": lambda: g.cheese(1000),
+        "cheese-8000": lambda: g.cheese(8000), "cheese-32000": lambda: g.cheese(32000),
+        "city-3385": lambda: g.city(340), "city-343k": lambda: g.city(34300), "city-987k": lambda: g.city(98700),
+        "satellites-87.5k": lambda: g.satellites(6250), "satellites-1.12M": lambda: g.satellites(80000),
+    }
+
+
 class CLIError(Exception):
     """A user error: printed as one line, exit status 2."""
 
@@ -107,8 +118,13 @@ def _render(args) -> int:
     elif args.input.lower().endswith(MODEL_SUFFIXES):
         scene = mi.load_dict(model_scene_dict(mi, csg, _load_model(args.input), width, height, args.spp, integrator))
         what = args.input
+    elif args.input in builtin_models():
+        model = builtin_models()[args.input]()
+        scene = mi.load_dict(model_scene_dict(mi, csg, model, width, height, args.spp, integrator))
+        what = f"the built-in {args.input}"
     else:
-        raise CLIError(f"{args.input}: expected a Mitsuba scene (.xml) or a model ({', '.join(MODEL_SUFFIXES)})")
+        raise CLIError(f"{args.input}: expected a Mitsuba scene (.xml), a model ({', '.join(MODEL_SUFFIXES)}) "
+                       f"or a built-in scene ({', '.join(builtin_models())})")
     passes = max(1, min(args.passes, args.spp))
     spp_per_pass = [args.spp // passes + (1 if i < args.spp % passes else 0) for i in range(passes)]
     t0 = time.perf_counter()
@@ -201,6 +217,8 @@ def _bench(args) -> int:
     if args.input is None:
         from .generators import cheese
         model, what = cheese(1000), "the Cheese-1000"
+    elif args.input in builtin_models():
+        model, what = builtin_models()[args.input](), f"the built-in {args.input}"
     else:
         model, what = _load_model(args.input), args.input
     width, height = args.size
@@ -228,7 +246,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--variant", help="Mitsuba variant (default: llvm_ad_rgb)")
     sub = p.add_subparsers(dest="command")
     r = sub.add_parser("render", help="render a scene (.xml), a model file, or the built-in demo")
-    r.add_argument("input", nargs="?", help="scene .xml or model (.json/.gdml/.csg); none: the demo Cheese")
+    r.add_argument("input", nargs="?", help="scene .xml, model (.json/.gdml/.csg) or a built-in scene name "
+                   "(cheese-1000, city-3385, satellites-87.5k, ...); none: the demo Cheese")
     r.add_argument("-o", "--output", default="cheese.exr", help="output OpenEXR file (default: cheese.exr)")
     r.add_argument("--spp", type=_positive_int, default=16, help="samples per pixel (default 16)")
     r.add_argument("--size", type=_size, default=(640, 360), help="WIDTHxHEIGHT (default 640x360)")

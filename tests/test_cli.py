@@ -42,6 +42,12 @@ def test_render_model_and_scene(tmp_path):
     assert "dd.y" in [c for c in aov.struct_()] or aov.channel_count() > 3
 
 
+def test_render_and_bench_builtin_scenes(tmp_path, capsys):
+    assert run("render", "city-3385", "--size", "24x16", "--spp", "1", "-o", tmp_path / "c.exr") == 0
+    assert run("bench", "satellites-87.5k", "--size", "16x9", "--repeats", "1") == 0
+    assert "87500 primitives" in capsys.readouterr().out
+
+
 def test_python_m_entry_point(tmp_path):
     run_ = subprocess.run([sys.executable, "-m", "mitsuba_csg", "info", str(MODEL)], capture_output=True, text=True,
                           cwd=ROOT)
@@ -70,6 +76,7 @@ def test_bench(capsys):
 @pytest.mark.parametrize("argv, message", [
     (["render", "missing.json"], "missing.json: no such file"),
     (["render", "model.txt"], "expected a Mitsuba scene"),
+    (["render", "city-12"], "built-in scene (cheese-500"),
     (["info", "missing.gdml"], "no such file"),
     (["--variant", "nope", "info", str(MODEL)], "unknown variant 'nope'"),
     (["--variant", "scalar_rgb", "info", str(MODEL)], "scalar variant"),
