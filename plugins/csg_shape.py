@@ -70,6 +70,9 @@ class CSGShape(mi.Mesh):
         bsdfs = {}
         for name in list(props.keys()):
             value = props[name]
+            if isinstance(value, mi.Emitter):
+                raise CSGError(f"csg shape ({source}): cannot be an area emitter (it is traced analytically, "
+                               "and its proxy mesh has no area); put the light on an ordinary shape")
             if isinstance(value, mi.BSDF):
                 bsdfs[value.id() or name] = value
                 props.remove_property(name)

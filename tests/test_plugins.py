@@ -193,6 +193,12 @@ def test_several_csg_shapes_with_to_world_and_mixed_meshes(tmp_path):
     assert bbox.min.x < -2.2 and bbox.max.x > 2.2
 
 
+def test_area_emitter_on_a_csg_shape_is_refused():
+    shape = {**csg_shape(csg.Sphere(1.0)), "emitter": {"type": "area", "radiance": 1.0}}
+    with pytest.raises(Exception, match="cannot be an area emitter"):
+        mi.load_dict({"type": "scene", "s": shape})
+
+
 def test_traverse_exposes_primitives_and_update_moves_them():
     scene = mi.load_dict(scene_dict(csg_shape(csg.Sphere(1.0)), {"type": "csg_aov", "aovs": "dd:depth"}, spp=1))
     params = mi.traverse(scene)
