@@ -75,7 +75,7 @@ def attached_hit(to_world, tree, prim, info, t, o, d, active):
                    rows[1].x, rows[1].y, rows[1].z,
                    rows[2].x, rows[2].y, rows[2].z)
     centre = m.Array3f(rows[0].w, rows[1].w, rows[2].w)
-    inv = dr.inverse(A)
+    inv = dr.rcp(A)                 # the matrix inverse (dr.inverse is deprecated)
     o_c = inv @ (m.Array3f(o) - centre)
     d_c = inv @ m.Array3f(d)
     b = tree.b

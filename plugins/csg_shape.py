@@ -75,10 +75,10 @@ class CSGShape(mi.Mesh):
                                "and its proxy mesh has no area); put the light on an ordinary shape")
             if isinstance(value, mi.BSDF):
                 bsdfs[value.id() or name] = value
-                props.remove_property(name)
+                del props[name]
         for key in ("filename", "model", "optimize", "to_world"):
-            if props.has_property(key):
-                props.remove_property(key)
+            if key in props:
+                del props[key]
         matrix = np.array(to_world.matrix, dtype=np.float64).reshape(4, 4)
         if isinstance(model, OptimizedModel):
             model = model.source
@@ -164,11 +164,11 @@ class CSGShape(mi.Mesh):
 
 
 def _model_from(props):
-    if props.has_property("filename") == props.has_property("model"):
+    if ("filename" in props) == ("model" in props):
         raise CSGError("csg shape: give exactly one of 'filename' or 'model'")
-    if props.has_property("filename"):
+    if "filename" in props:
         from mitsuba_csg import load
         path = str(props["filename"])
-        resolved = mi.Thread.thread().file_resolver().resolve(path)
+        resolved = mi.file_resolver().resolve(path)
         return load(str(resolved)), path
     return model_refs.resolve(str(props["model"])), "inline model"

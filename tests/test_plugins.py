@@ -125,7 +125,8 @@ def _silhouette_free(depth, tol=0.05):
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
             nb = pad[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
-            ok &= padhit[1 + dy:1 + dy + h, 1 + dx:1 + dx + w] & (np.abs(nb - depth) < tol * depth)
+            near = (np.abs(nb - depth) < tol * depth) if np.isfinite(tol) else True
+            ok &= padhit[1 + dy:1 + dy + h, 1 + dx:1 + dx + w] & near
     return ok
 
 
