@@ -259,22 +259,45 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
     return t, face, cls
 
 
-def local_normal(b, shape, param, plane_buf, plane_start, p, face):
-    """Outward (unnormalized) normal of a canonical primitive at canonical point p on `face`."""
-    n = b.Array3f(p)
-    axis_n = b.Array3f(dr.select(face // 2 == 0, 1.0, 0.0), dr.select(face // 2 == 1, 1.0, 0.0),
-                       dr.select(face // 2 == 2, 1.0, 0.0))
-    box_n = dr.select((face & 1) == 1, axis_n, -axis_n)
+def surface_function(m, shape, face, param, plane, x):
+    """(g, grad g) of a primitive's `face` at canonical point x; g = 0 on the surface, < 0 inside.
+
+    `m` is a Dr.Jit module (detached or AD) and `plane` the face's plane for convex primitives.
+    grad g is the outward (unnormalized) normal: the hit normal and its derivatives use it.
+    """
+    zero = dr.zeros(m.Float, dr.width(x.x))
+    # sphere
+    g = dr.squared_norm(x) - 1.0
+    grad = 2.0 * x
+    # box: face 2*axis + side
+    axis, plus = face // 2, (face & 1) == 1
+    sign = dr.select(plus, 1.0, -1.0)
+    coord = dr.select(axis == 0, x.x, dr.select(axis == 1, x.y, x.z))
+    unit = m.Array3f(dr.select(axis == 0, sign, zero), dr.select(axis == 1, sign, zero),
+                     dr.select(axis == 2, sign, zero))
+    box_g = sign * coord - 1.0
+    # cone: side 0, bottom 1, top 2
     a, c = 0.5 * (param[0] + param[1]), 0.5 * (param[1] - param[0])
-    cone_side = b.Array3f(p.x, p.y, -c * (a + c * p.z))
-    cone_n = dr.select(face == 0, cone_side, b.Array3f(0.0, 0.0, dr.select(face == 1, -1.0, 1.0)))
+    r = a + c * x.z
+    side_g = x.x * x.x + x.y * x.y - r * r
+    side_grad = m.Array3f(2.0 * x.x, 2.0 * x.y, -2.0 * c * r)
+    cap_sign = dr.select(face == 1, -1.0, 1.0)
+    cone_g = dr.select(face == 0, side_g, cap_sign * x.z - 1.0)
+    cone_grad = dr.select(face == 0, side_grad, m.Array3f(zero, zero, cap_sign + zero))
+    # torus (major 1, minor k)
     k = param[0]
-    s = dr.squared_norm(p) + 1.0 - k * k
-    torus_n = b.Array3f(s * p.x - 2.0 * p.x, s * p.y - 2.0 * p.y, s * p.z)
-    plane = dr.gather(b.Array4f, plane_buf, plane_start + face, shape == P.CONVEX)
-    convex_n = b.Array3f(plane.x, plane.y, plane.z)
-    n = dr.select(shape == P.BOX, box_n, n)
-    n = dr.select(shape == P.CONE, cone_n, n)
-    n = dr.select(shape == P.TORUS, torus_n, n)
-    n = dr.select(shape == P.CONVEX, convex_n, n)
-    return n
+    s = dr.squared_norm(x) + 1.0 - k * k
+    torus_g = s * s - 4.0 * (x.x * x.x + x.y * x.y)
+    torus_grad = m.Array3f(4.0 * s * x.x - 8.0 * x.x, 4.0 * s * x.y - 8.0 * x.y, 4.0 * s * x.z)
+    # convex polyhedron: the face's plane
+    n = m.Array3f(plane.x, plane.y, plane.z)
+    plane_g = dr.dot(n, x) - plane.w
+    g = dr.select(shape == P.BOX, box_g, g)
+    grad = dr.select(shape == P.BOX, unit, grad)
+    g = dr.select(shape == P.CONE, cone_g, g)
+    grad = dr.select(shape == P.CONE, cone_grad, grad)
+    g = dr.select(shape == P.TORUS, torus_g, g)
+    grad = dr.select(shape == P.TORUS, torus_grad, grad)
+    g = dr.select(shape == P.CONVEX, plane_g, g)
+    grad = dr.select(shape == P.CONVEX, n, grad)
+    return g, grad

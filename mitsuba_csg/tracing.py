@@ -12,6 +12,7 @@ import drjit as dr
 import numpy as np
 
 from . import intersect as X
+from . import primitives as P
 from .errors import CSGError
 from .kernel import FLIP_BIT, NO_LEAF, KernelTree, backend_of, gather_prim, node_record, traverse, upload
 from .lowering import FlatTree, lower
@@ -97,7 +98,9 @@ def hit_normal(tree: KernelTree, prim, info, o, d, t, active):
     p = o + t * d
     p4 = b.Array4f(p.x, p.y, p.z, 1.0)
     p_canonical = b.Array3f(dr.dot(rows[0], p4), dr.dot(rows[1], p4), dr.dot(rows[2], p4))
-    n_local = X.local_normal(b, shape, param, tree.planes, plane_start, p_canonical, info >> 3)
+    face = info >> 3
+    plane = dr.gather(b.Array4f, tree.planes, plane_start + face, active & (shape == P.CONVEX))
+    _, n_local = X.surface_function(b.module, shape, face, param, plane, p_canonical)
     # normals transform with the inverse transpose of canonical -> world, i.e. M^T
     n = (rows[0].x * n_local.x + rows[1].x * n_local.y + rows[2].x * n_local.z,
          rows[0].y * n_local.x + rows[1].y * n_local.y + rows[2].y * n_local.z,
