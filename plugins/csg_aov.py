@@ -85,7 +85,7 @@ class CSGAOVIntegrator(mi.SamplingIntegrator):
                     index = dr.select(csg_hit & (csg_shape == k), float(csg.shape_index[id(shape)]), index)
                 mesh_index = mi.Float(0.0)
                 for k, shape in enumerate(shapes):
-                    if id(shape) not in {id(c) for c in csg.csg}:
+                    if not getattr(shape, "is_csg_proxy", False):      # the same test as SceneCSG
                         mesh_index = dr.select(si.shape == mi.ShapePtr(shape), float(k), mesh_index)
                 out.append(dr.select(hit, dr.select(csg_hit, index, mesh_index), 0.0))
         return color, valid, out
