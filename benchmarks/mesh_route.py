@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 import common
-from trace_throughput import SCENES, measure, rays_for
+from trace_throughput import measure, rays_for
 
 
 def mesh_route(model, o, d, segments, repeats):
@@ -23,7 +23,7 @@ def mesh_route(model, o, d, segments, repeats):
     import mitsuba as mi
 
     import mitsuba_csg as csg
-    from mitsuba_csg.mesh import mesh_arrays
+    from mitsuba_csg.formats.mesh_export import mesh_arrays
     t0 = time.perf_counter()
     manifold = csg.to_mesh(model, segments=segments)
     boolean_s = time.perf_counter() - t0
@@ -56,11 +56,11 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
     import mitsuba_csg as csg
-    from mitsuba_csg import generators
+    from mitsuba_csg import scenes
     width, height = (int(v) for v in args.size.split("x"))
     rows = []
     for scene in args.scenes.split(","):
-        model = SCENES[scene](generators)
+        model = scenes.named(scene)
         o, d = rays_for(model, width, height)
         t0 = time.perf_counter()
         prepared = csg.prepare(model)

@@ -22,9 +22,10 @@ def main(argv=None):
     import drjit as dr
 
     import mitsuba_csg as csg
-    from mitsuba_csg.generators import city
-    from mitsuba_csg.kernel import upload
-    from mitsuba_csg.tracing import Prepared, _to_array3, default_backend, trace_rays
+    from mitsuba_csg.scenes import city
+    from mitsuba_csg.engine.device import upload
+    from mitsuba_csg.engine.backend import default_backend
+    from mitsuba_csg.queries import Prepared, rays_to_device, trace_rays
     from trace_throughput import rays_for
     width, height = (int(v) for v in args.size.split("x"))
     rows = []
@@ -41,7 +42,7 @@ def main(argv=None):
         if not args.no_trace:
             prepared = Prepared(opt.flat, upload(opt.flat, default_backend()))
             o, d = rays_for(model, width, height)
-            O, D = _to_array3(prepared.tree.b, o), _to_array3(prepared.tree.b, d)
+            O, D = rays_to_device(o, prepared.tree.b), rays_to_device(d, prepared.tree.b)
             dr.eval(O, D)
 
             def run():

@@ -17,7 +17,7 @@ def main(argv=None):
     parser.add_argument("--plot", default=str(common.ROOT / "docs" / "images" / "scaling.png"))
     args = parser.parse_args(argv)
     import mitsuba_csg as csg
-    from mitsuba_csg import generators
+    from mitsuba_csg import scenes as generators
     families = {
         "cheese": (lambda n: generators.cheese(n), [125, 500, 2000, 8000]),
         "city": (lambda n: generators.city(max(1, n // 10)), [340, 3400, 34000, 340000]),

@@ -19,21 +19,6 @@ import numpy as np
 
 import common
 
-SCENES = {
-    "cheese-500": lambda g: g.cheese(500),
-    "cheese-1000": lambda g: g.cheese(1000),
-    "cheese-8000": lambda g: g.cheese(8000),
-    "cheese-32000": lambda g: g.cheese(32000),
-    "city-3385": lambda g: g.city(340),
-    "city-34k": lambda g: g.city(3400),
-    "city-343k": lambda g: g.city(34300),
-    "city-987k": lambda g: g.city(98700),
-    "satellites-87.5k": lambda g: g.satellites(6250),
-    "satellites-1.12M": lambda g: g.satellites(80000),
-}
-# Table 2 of the paper, in its order.
-PAPER = ["city-3385", "city-343k", "city-987k", "cheese-500", "cheese-1000", "cheese-8000", "cheese-32000",
-         "satellites-87.5k", "satellites-1.12M"]
 # An unoptimized frame slower than this (estimated from a small frame) is reported as N/A.
 SLOW_FRAME_S = 60.0
 
@@ -48,9 +33,9 @@ def rays_for(model, width, height):
 def measure(prepared, o, d, repeats):
     import drjit as dr
 
-    from mitsuba_csg.tracing import _to_array3, trace_rays
+    from mitsuba_csg.queries import rays_to_device, trace_rays
     b = prepared.tree.b
-    O, D = _to_array3(b, o), _to_array3(b, d)
+    O, D = rays_to_device(o, b), rays_to_device(d, b)
     dr.eval(O, D)
     out = {}
 
@@ -109,13 +94,13 @@ def _first_trace(scene: str, size: str) -> None:
     import drjit as dr
 
     import mitsuba_csg as csg
-    from mitsuba_csg import generators
-    from mitsuba_csg.tracing import _to_array3, trace_rays
+    from mitsuba_csg import scenes
+    from mitsuba_csg.queries import rays_to_device, trace_rays
     width, height = (int(v) for v in size.split("x"))
-    model = SCENES[scene](generators)
+    model = scenes.named(scene)
     prepared = csg.prepare(model)
     o, d = rays_for(model, width, height)
-    O, D = _to_array3(prepared.tree.b, o), _to_array3(prepared.tree.b, d)
+    O, D = rays_to_device(o, prepared.tree.b), rays_to_device(d, prepared.tree.b)
     dr.eval(O, D)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     t0 = time.perf_counter()
@@ -139,12 +124,12 @@ def main(argv=None):
     parser.add_argument("--name", default="trace_throughput")
     args = parser.parse_args(argv)
     import mitsuba_csg as csg
-    from mitsuba_csg import generators
+    from mitsuba_csg import scenes
     width, height = (int(v) for v in args.size.split("x"))
     rows = []
-    scenes = PAPER if args.scenes == "paper" else args.scenes.split(",")
-    for scene in scenes:
-        model = SCENES[scene](generators)
+    names = list(scenes.PAPER_TABLE_2) if args.scenes == "paper" else args.scenes.split(",")
+    for scene in names:
+        model = scenes.named(scene)
         o, d = rays_for(model, width, height)
         results = {}
         for label, optimize in (("-", False), ("+", True)):

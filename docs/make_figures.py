@@ -53,7 +53,7 @@ def automaton():
 
 def heights():
     import mitsuba_csg as csg
-    from mitsuba_csg.generators import cheese, sphere_chain
+    from mitsuba_csg.scenes import cheese, sphere_chain
     box, *holes = cheese(1000).children
     chain = box
     for hole in holes:                 # the Cheese as a user might write it: a - b - c - ...

@@ -12,7 +12,7 @@ import drjit as dr
 import mitsuba as mi
 
 import mitsuba_csg as csg
-from mitsuba_csg import generators
+from mitsuba_csg import scenes as generators
 from mitsuba_csg.cli import model_scene_dict
 
 HERE = Path(__file__).resolve().parent
@@ -44,7 +44,7 @@ def detector():
   </structure>
   <setup name="Default" version="1.0"><world ref="WorldV"/></setup>
 </gdml>"""
-    from mitsuba_csg import gdml
+    from mitsuba_csg.formats import gdml
     return gdml.loads(text, "detector.gdml")
 
 

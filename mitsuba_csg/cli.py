@@ -7,18 +7,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
-MODEL_SUFFIXES = (".json", ".gdml", ".csg")
-
-
-def builtin_models():
-    """The paper's scenes by name (`mitsuba-csg render city-3385`), built by the generators."""
-    from . import generators as g
-    return {
-        "cheese-500": lambda: g.cheese(500), "cheese-1000": lambda: g.cheese(1000),
-        "cheese-8000": lambda: g.cheese(8000), "cheese-32000": lambda: g.cheese(32000),
-        "city-3385": lambda: g.city(340), "city-343k": lambda: g.city(34300), "city-987k": lambda: g.city(98700),
-        "satellites-87.5k": lambda: g.satellites(6250), "satellites-1.12M": lambda: g.satellites(80000),
-    }
+from .formats import MODEL_SUFFIXES
+from .scenes import NAMED as BUILTIN_SCENES
 
 
 class CLIError(Exception):
@@ -69,7 +59,7 @@ def _load_model(path: str):
 
 def demo_scene_dict(mi, csg, width, height, spp, integrator):
     """The built-in demo: the paper's Cheese (a cube minus 500 spheres) on a floor."""
-    from .generators import cheese
+    from .scenes import cheese
     return model_scene_dict(mi, csg, cheese(500, seed=0), width, height, spp, integrator,
                             colour=[0.85, 0.65, 0.25])
 
@@ -118,13 +108,13 @@ def _render(args) -> int:
     elif args.input.lower().endswith(MODEL_SUFFIXES):
         scene = mi.load_dict(model_scene_dict(mi, csg, _load_model(args.input), width, height, args.spp, integrator))
         what = args.input
-    elif args.input in builtin_models():
-        model = builtin_models()[args.input]()
+    elif args.input in BUILTIN_SCENES:
+        model = BUILTIN_SCENES[args.input]()
         scene = mi.load_dict(model_scene_dict(mi, csg, model, width, height, args.spp, integrator))
         what = f"the built-in {args.input}"
     else:
         raise CLIError(f"{args.input}: expected a Mitsuba scene (.xml), a model ({', '.join(MODEL_SUFFIXES)}) "
-                       f"or a built-in scene ({', '.join(builtin_models())})")
+                       f"or a built-in scene ({', '.join(BUILTIN_SCENES)})")
     passes = max(1, min(args.passes, args.spp))
     spp_per_pass = [args.spp // passes + (1 if i < args.spp % passes else 0) for i in range(passes)]
     t0 = time.perf_counter()
@@ -213,12 +203,12 @@ def _bench(args) -> int:
     import drjit as dr
 
     from .camera import framing, look_at_rays
-    from .tracing import _to_array3, trace_rays
+    from .queries import rays_to_device, trace_rays
     if args.input is None:
-        from .generators import cheese
+        from .scenes import cheese
         model, what = cheese(1000), "the Cheese-1000"
-    elif args.input in builtin_models():
-        model, what = builtin_models()[args.input](), f"the built-in {args.input}"
+    elif args.input in BUILTIN_SCENES:
+        model, what = BUILTIN_SCENES[args.input](), f"the built-in {args.input}"
     else:
         model, what = _load_model(args.input), args.input
     width, height = args.size
@@ -226,7 +216,7 @@ def _bench(args) -> int:
     lower, upper = model.bounds()
     origin, target = framing(lower, upper, 40.0, width / height)
     o, d = look_at_rays(origin, target, fov_degrees=40.0, width=width, height=height)
-    O, D = _to_array3(prepared.tree.b, o), _to_array3(prepared.tree.b, d)
+    O, D = rays_to_device(o, prepared.tree.b), rays_to_device(d, prepared.tree.b)
     best = float("inf")
     for _ in range(args.repeats + 1):
         t0 = time.perf_counter()
@@ -240,12 +230,23 @@ def _bench(args) -> int:
     return 0
 
 
+COMMANDS = ("render", "info", "convert", "bench")
+
+
+def _global_options(p: argparse.ArgumentParser, default) -> None:
+    p.add_argument("--verbose", action="store_true", default=default, help="show tracebacks on errors")
+    p.add_argument("--variant", default=default, help="Mitsuba variant (default: llvm_ad_rgb)")
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mitsuba-csg", description="Exact CSG ray tracing in Mitsuba 3.")
-    p.add_argument("--verbose", action="store_true", help="show tracebacks on errors")
-    p.add_argument("--variant", help="Mitsuba variant (default: llvm_ad_rgb)")
+    _global_options(p, None)
+    # The global options are accepted after the command too (`render x.xml --verbose`);
+    # SUPPRESS keeps a subcommand from resetting what was given before it.
+    common = argparse.ArgumentParser(add_help=False)
+    _global_options(common, argparse.SUPPRESS)
     sub = p.add_subparsers(dest="command")
-    r = sub.add_parser("render", help="render a scene (.xml), a model file, or the built-in demo")
+    r = sub.add_parser("render", parents=[common], help="render a scene (.xml), a model file, or the built-in demo")
     r.add_argument("input", nargs="?", help="scene .xml, model (.json/.gdml/.csg) or a built-in scene name "
                    "(cheese-1000, city-3385, satellites-87.5k, ...); none: the demo Cheese")
     r.add_argument("-o", "--output", default="cheese.exr", help="output OpenEXR file (default: cheese.exr)")
@@ -254,13 +255,13 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--integrator", default="csg_path", choices=["csg_path", "csg_aov", "csg_prb"])
     r.add_argument("--passes", type=_positive_int, default=4, help="render in this many passes (progress)")
     r.add_argument("--png", action="store_true", help="also write a tonemapped sRGB .png preview")
-    i = sub.add_parser("info", help="primitives, operations, height and bounds of a model")
+    i = sub.add_parser("info", parents=[common], help="primitives, operations, height and bounds of a model")
     i.add_argument("model")
-    c = sub.add_parser("convert", help="convert a model to a mesh (.ply/.obj/.stl) or native .json")
+    c = sub.add_parser("convert", parents=[common], help="convert a model to a mesh (.ply/.obj/.stl) or native .json")
     c.add_argument("model")
     c.add_argument("-o", "--output", required=True)
     c.add_argument("--segments", type=_positive_int, default=64, help="circular segments of round primitives")
-    b = sub.add_parser("bench", help="primary-ray throughput of a model (default: Cheese-1000)")
+    b = sub.add_parser("bench", parents=[common], help="primary-ray throughput of a model (default: Cheese-1000)")
     b.add_argument("input", nargs="?")
     b.add_argument("--size", type=_size, default=(1280, 720))
     b.add_argument("--repeats", type=_positive_int, default=3)
@@ -271,9 +272,8 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     p = parser()
-    if not any(a in ("render", "info", "convert", "bench", "-h", "--help") for a in argv):
-        argv = argv[:sum(1 for a in argv if a in ("--verbose",))] + ["render"] + \
-            argv[sum(1 for a in argv if a in ("--verbose",)):]
+    if not any(a in (*COMMANDS, "-h", "--help") for a in argv):
+        argv = ["render", *argv]          # `mitsuba-csg scene.xml`: render is implied
     args = p.parse_args(argv)
     handlers = {"render": _render, "info": _info, "convert": _convert, "bench": _bench}
     try:

@@ -4,10 +4,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_csg.attached import attached_hit
-from mitsuba_csg.tracing import trace_rays
-
-
+from mitsuba_csg.engine.hit_geometry import attached_hit
+from mitsuba_csg.queries import trace_rays
 
 class SceneCSG:
     """The CSG shapes of a scene and whether anything else (meshes, spheres, ...) is in it."""
@@ -77,13 +75,8 @@ class SceneCSG:
         return blocked
 
 
-def mis_weight(pdf_a, pdf_b):
-    """Power heuristic (exponent 2), 0 where both pdfs are 0."""
-    a2 = dr.square(pdf_a)
-    return dr.detach(dr.select(pdf_a > 0, a2 / (a2 + dr.square(pdf_b)), 0))
-
-
 def read_depths(props, name: str):
+    """max_depth and rr_depth as Mitsuba's ADIntegrator reads them, for non-AD integrators."""
     max_depth = props.get("max_depth", 6)
     if max_depth < 0 and max_depth != -1:
         raise ValueError(f"{name}: \"max_depth\" must be set to -1 (infinite) or a value >= 0")

@@ -4,7 +4,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .csg_common import SceneCSG, mis_weight, read_depths
+from mitsuba.ad.integrators.common import mis_weight
+
+from .csg_common import SceneCSG, read_depths
 
 
 class CSGPathIntegrator(mi.SamplingIntegrator):

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
-from mitsuba.ad.integrators.common import RBIntegrator
+from mitsuba.ad.integrators.common import RBIntegrator, mis_weight
 
-from .csg_common import SceneCSG, mis_weight, read_depths
+from .csg_common import SceneCSG
 
 
 class CSGPRBIntegrator(RBIntegrator):
@@ -39,10 +39,6 @@ class CSGPRBIntegrator(RBIntegrator):
 
         'integrator': {'type': 'csg_prb', 'max_depth': 4}
     """
-
-    def __init__(self, props: mi.Properties):
-        super().__init__(props)
-        self.max_depth, self.rr_depth = read_depths(props, "csg_prb")
 
     @dr.syntax
     def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
@@ -121,6 +117,13 @@ class CSGPRBIntegrator(RBIntegrator):
                     bsdf_val = bsdf.eval(bsdf_ctx, si, wo, active_next)
                     Lr_ind = L * dr.relative_grad(bsdf_val)
                     Lo = Le + Lr_dir + Lr_ind
+                    # As Mitsuba's prb: a detached contribution here means a parameter that
+                    # cannot get derivatives, or a forgotten dr.enable_grad; say so.
+                    detached = dr.flag(dr.JitFlag.VCallRecord) and not dr.grad_enabled(Lo)
+                    if dr.hint(detached, mode="scalar"):
+                        raise RuntimeError("csg_prb: the contribution of the differential phase is not "
+                                           "attached to the AD graph (is dr.enable_grad called on a "
+                                           "differentiable scene parameter?)")
                     if dr.hint(mode == dr.ADMode.Backward, mode="scalar"):
                         dr.backward_from(δL * Lo)
                     else:

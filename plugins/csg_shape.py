@@ -5,12 +5,13 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_csg import lowering
-from mitsuba_csg import models as model_refs
+from mitsuba_csg.engine.device import upload
+from mitsuba_csg.engine.lowering import with_primitive_transforms
+from mitsuba_csg.engine.optimize import OptimizedModel
 from mitsuba_csg.errors import CSGError
-from mitsuba_csg.kernel import upload
-from mitsuba_csg.optimize import OptimizedModel
-from mitsuba_csg.tracing import Prepared, prepare
+from mitsuba_csg.queries import Prepared, prepare
+
+from . import model_ref
 
 
 class CSGShape(mi.Mesh):
@@ -120,13 +121,7 @@ class CSGShape(mi.Mesh):
             dets = np.linalg.det(to_world[:, :3, :3])
             if not np.all(np.isfinite(rows)) or np.any(np.abs(dets) < 1e-30):
                 raise CSGError("csg shape: primitive_to_world has NaN or singular matrices")
-            lower, upper = lowering.primitive_bounds(flat.prim_shape, to_world, flat.prim_param,
-                                                     flat.prim_plane_start, flat.plane_vertices)
-            prims = lowering.replace(flat, prim_to_world=to_world,
-                                     prim_to_canonical=np.linalg.inv(to_world)[:, :3, :],
-                                     prim_lower=lower, prim_upper=upper)
-            flat = lowering.with_nodes(prims, flat.node_kind, flat.node_negative, flat.node_left,
-                                       flat.node_right, flat.node_parent)
+            flat = with_primitive_transforms(flat, to_world)
             self.prepared = Prepared(flat, upload(flat, self.prepared.tree.b))
             super().parameters_changed([])
             self._update_proxy_bounds()
@@ -171,4 +166,4 @@ def _model_from(props):
         path = str(props["filename"])
         resolved = mi.file_resolver().resolve(path)
         return load(str(resolved)), path
-    return model_refs.resolve(str(props["model"])), "inline model"
+    return model_ref.resolve(str(props["model"])), "inline model"

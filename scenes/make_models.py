@@ -5,7 +5,7 @@
 from pathlib import Path
 
 import mitsuba_csg as csg
-from mitsuba_csg.generators import cheese
+from mitsuba_csg.scenes import cheese
 
 HERE = Path(__file__).resolve().parent
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mitsuba_csg.model import Operation
-from mitsuba_csg.primitives import Box, Cone, ConvexPolyhedron, Prism, Sphere, Torus
+from mitsuba_csg.model.primitives import Box, Cone, ConvexPolyhedron, Prism, Sphere, Torus
 
 INF = np.inf
 _REG_TOL = 1e-12   # regularization tolerance, relative to the ray's time scale

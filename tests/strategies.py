@@ -9,7 +9,7 @@ import numpy as np
 from hypothesis import strategies as st
 
 from mitsuba_csg.model import difference, intersection, union
-from mitsuba_csg.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
+from mitsuba_csg.model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
 
 
 def _f(lo, hi):

@@ -51,8 +51,8 @@ from hypothesis import assume, given, settings
 import mitsuba as mi
 
 import mitsuba_csg as csg
-from mitsuba_csg.generators import cheese
-from mitsuba_csg.mesh import mesh_arrays
+from mitsuba_csg.scenes import cheese
+from mitsuba_csg.formats.mesh_export import mesh_arrays
 from strategies import models, seeds
 
 SEGMENTS = 256

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 import mitsuba_csg as csg
-from mitsuba_csg import generators
+from mitsuba_csg import scenes as generators
 
 ROOT = Path(__file__).resolve().parents[1]
 

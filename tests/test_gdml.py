@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 import mitsuba_csg as csg
-from mitsuba_csg import gdml
+from mitsuba_csg.formats import gdml
+from mitsuba_csg.formats.gdml.expressions import Expressions
 from mitsuba_csg.errors import ModelError
-from mitsuba_csg.native import FormatError
+from mitsuba_csg.formats.native_json import FormatError
 
 S3 = math.sqrt(3.0)
 
@@ -82,7 +83,7 @@ def test_defines_expressions_and_units():
 
 
 def test_evaluator_whitelist():
-    r = gdml._Reader.__new__(gdml._Reader)
+    r = Expressions()
     r.scalars = {"x": 3.0}
     assert r.evaluate("2^3^2") == 2.0 ** 9          # right-associative power, above * and unary minus
     assert r.evaluate("-2^2") == -4.0

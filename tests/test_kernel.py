@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 import mitsuba_csg as csg
 import reference as ref
 from agreement import compare
-from mitsuba_csg.generators import cheese
+from mitsuba_csg.scenes import cheese
 from strategies import make_points, make_rays, models
 
 # Each model is traced as lowered (general form), in positive form, and optimized.
@@ -303,7 +303,7 @@ def test_bad_rays_are_refused():
 
 
 def test_tree_too_deep_is_refused():
-    from mitsuba_csg import kernel
+    from mitsuba_csg.engine import device as kernel
     m = csg.Sphere(1.0)
     for i in range(kernel.MAX_STACK + 5):           # alternating operations cannot be flattened
         m = (m | csg.Sphere(0.5).translate((i * 0.01, 0, 0))) if i % 2 else (m - csg.Box(0.1).translate((0, i * 0.01, 3)))

@@ -1,4 +1,4 @@
-"""Ground-truth meshes (`mitsuba_csg.mesh`): volumes against analytic answers, transforms,
+"""Ground-truth meshes (`mitsuba_csg.formats.mesh_export`): volumes against analytic answers, transforms,
 Booleans, and mesh files read back by Mitsuba's own loaders."""
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import pytest
 
 import manifold3d as m3
 
-from mitsuba_csg import model as M
-from mitsuba_csg import primitives as P
+from mitsuba_csg.model import nodes as M
+from mitsuba_csg.model import primitives as P
 from mitsuba_csg.errors import ModelError
-from mitsuba_csg.mesh import mesh_arrays, read_stl, save_mesh, to_mesh
+from mitsuba_csg.formats.mesh_export import mesh_arrays, read_stl, save_mesh, to_mesh
 
 SEG = 128
 REL = 0.01     # tessellation error at 128 segments is ~0.05 %; 1 % leaves room

@@ -1,4 +1,4 @@
-"""The native `.json` model format (`mitsuba_csg.native`): exact round trips, every error with
+"""The native `.json` model format (`mitsuba_csg.formats.native_json`): exact round trips, every error with
 its JSON path, deep and large documents without RecursionError, and a fuzz test of mutated files."""
 from __future__ import annotations
 
@@ -14,11 +14,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mitsuba_csg import native
+from mitsuba_csg.formats import native_json as native
 from mitsuba_csg.errors import ModelError
 from mitsuba_csg.model import Node, Operation, difference, union
-from mitsuba_csg.native import FormatError, from_dict, load, load_with_materials, save, to_dict
-from mitsuba_csg.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
+from mitsuba_csg.formats.native_json import FormatError, from_dict, load, load_with_materials, save, to_dict
+from mitsuba_csg.model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
 from strategies import models
 
 REPO = Path(__file__).resolve().parents[1]

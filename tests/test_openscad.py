@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 import mitsuba_csg as csg
-from mitsuba_csg import openscad
+from mitsuba_csg.formats import openscad
 from mitsuba_csg.errors import ModelError
-from mitsuba_csg.openscad import FormatError, OpenSCADWarning
+from mitsuba_csg.formats.openscad import FormatError, OpenSCADWarning
 
 
 def load(text, **kw):
@@ -496,7 +496,7 @@ def test_examples_load_or_refuse_by_name(exported_csg):
 
 def _stl_scene(path):
     import mitsuba as mi
-    from mitsuba_csg.mesh import read_stl
+    from mitsuba_csg.formats.mesh_export import read_stl
     verts, faces = read_stl(path)
     tri = verts[faces]
     volume = float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6)

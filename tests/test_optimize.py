@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 import mitsuba_csg as csg
 import reference as ref
 from agreement import compare
-from mitsuba_csg.generators import cheese, city
+from mitsuba_csg.scenes import cheese, city
 from strategies import make_points, make_rays, models
 
 STAT_KEYS = {"height_before", "height_after", "nodes_before", "nodes_after", "leaves_duplicated", "seconds"}

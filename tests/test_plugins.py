@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import mitsuba_csg as csg
-from mitsuba_csg.mesh import save_mesh
+from mitsuba_csg.formats.mesh_export import save_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 LOOK = mi.ScalarTransform4f().look_at([4, -6, 3], [0, 0, 0], [0, 0, 1])

@@ -17,7 +17,7 @@ import reference as ref  # noqa: E402
 from strategies import aimed_rays, make_points, make_rays, models, seeds  # noqa: E402
 
 from mitsuba_csg.model import difference, intersection, union  # noqa: E402
-from mitsuba_csg.primitives import (Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere,  # noqa: E402
+from mitsuba_csg.model.primitives import (Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere,  # noqa: E402
                                     Torus)
 
 # The example count comes from the hypothesis profile (tests/conftest.py), when there is one.

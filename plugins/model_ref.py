@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import itertools
 
-from .errors import CSGError
-from .model import Node
+from mitsuba_csg.engine.optimize import OptimizedModel
+from mitsuba_csg.errors import CSGError
+from mitsuba_csg.model.nodes import Node
 
 _PREFIX = "mitsuba-csg:model:"
 _registry: dict[str, object] = {}
@@ -17,7 +18,6 @@ _counter = itertools.count()
 
 def model_ref(model) -> str:
     """A string naming `model` for `{'type': 'csg', 'model': ...}` (the model stays alive)."""
-    from .optimize import OptimizedModel
     if not isinstance(model, (Node, OptimizedModel)):
         raise CSGError(f"model_ref: expected a CSG model, got {type(model).__name__}")
     key = f"{_PREFIX}{next(_counter)}"
@@ -31,6 +31,6 @@ def resolve(text: str):
             raise CSGError(f"csg shape: {text!r} names no model registered in this process (use csg.model_ref)")
         return _registry[text]
     if text.lstrip().startswith("{"):
-        from . import native
-        return native.loads(text, source="<model property>")
+        from mitsuba_csg.formats import native_json
+        return native_json.loads(text, source="<model property>")
     raise CSGError("csg shape: 'model' must come from csg.model_ref(model) or be native JSON text")

@@ -1,8 +1,9 @@
 """Mesh export: the ground-truth triangle mesh of a CSG model, and mesh files.
 
 `to_mesh` evaluates a model with manifold3d's exact mesh Booleans. It is the reference the
-kernel is tested against and the "mesh it, then trace triangles" baseline of the benchmarks;
-it does not share code with the kernel or the lowering step.
+kernel is tested against and the "mesh it, then trace triangles" baseline of the benchmarks.
+It shares no code with the engine: primitives are meshed from their own parameters (not from
+the canonical forms the kernel traces), and the tree is walked as the user wrote it.
 
 Tessellation: every round primitive is approximated by a polyhedron *inscribed* in it
 (vertices on the true surface), with `segments` edges around each full circle (sphere
@@ -25,9 +26,9 @@ import numpy as np
 
 import manifold3d as m3
 
-from . import primitives as P
-from .errors import ModelError
-from .model import DIFFERENCE, INTERSECTION, UNION, Node, Operation
+from ..errors import ModelError
+from ..model import primitives as P
+from ..model.nodes import DIFFERENCE, INTERSECTION, UNION, Node, Operation
 
 MESH_FORMATS = (".ply", ".obj", ".stl")
 
@@ -141,7 +142,13 @@ def _check_status(mesh: m3.Manifold, what: str) -> None:
 
 
 class _ShapeCache:
-    """Canonical primitive meshes, built once per call and shared (Manifolds are immutable)."""
+    """Primitive meshes in their local frames, built once per call and shared (Manifolds are immutable).
+
+    Each mesh is made from the primitive's own parameters (radius, size, sides, ...) with
+    manifold3d's constructors, not from the canonical forms the kernel traces, so that the
+    reference shares no geometry code with the engine. (Convex polyhedra use the vertices
+    the model derives from their planes.)
+    """
 
     def __init__(self, segments: int):
         self.segments = segments
@@ -149,41 +156,61 @@ class _ShapeCache:
         self.keep: list = []   # keeps arrays keyed by id() alive for the cache's lifetime
 
     def primitive(self, prim: Node, world: np.ndarray) -> m3.Manifold:
-        canon, params, _planes = prim.canonical()
-        to_world = world @ canon
-        if not np.all(np.isfinite(to_world)) or np.linalg.det(to_world[:3, :3]) == 0:
+        if not np.all(np.isfinite(world)) or np.linalg.det(world[:3, :3]) == 0:
             raise ModelError(f"to_mesh: singular or non-finite world transform on {prim!r}")
         # manifold3d flips the triangles of a mirroring (negative determinant) transform.
-        return self.canonical(prim, params).transform(np.ascontiguousarray(to_world[:3, :]))
+        return self.local(prim).transform(np.ascontiguousarray(world[:3, :]))
 
-    def canonical(self, prim: Node, params) -> m3.Manifold:
-        shape, n = prim.shape, self.segments
-        if shape == P.CONVEX:
-            key = (shape, id(prim.vertices))
+    def local(self, prim: Node) -> m3.Manifold:
+        key = _mesh_key(prim)
+        if isinstance(prim, P.ConvexPolyhedron) and not isinstance(prim, P.Prism):
             self.keep.append(prim.vertices)
-        else:
-            key = (shape, float(params[0]), float(params[1]))
         mesh = self.cache.get(key)
-        if mesh is not None:
-            return mesh
-        if shape == P.SPHERE:
-            mesh = m3.Manifold.sphere(1.0, n)
-        elif shape == P.BOX:
-            mesh = m3.Manifold.cube((2.0, 2.0, 2.0), center=True)
-        elif shape == P.CONE:
-            mesh = m3.Manifold.cylinder(2.0, float(params[0]), float(params[1]), n, center=True)
-        elif shape == P.TORUS:
-            tube = m3.CrossSection.circle(float(params[0]), n).translate((1.0, 0.0))
-            mesh = m3.Manifold.revolve(tube, n)
-        elif shape == P.CONVEX:
-            mesh = m3.Manifold.hull_points(np.asarray(prim.vertices, dtype=np.float64))
-        else:
-            raise ModelError(f"to_mesh: unknown primitive shape code {shape!r} on {prim!r}")
-        _check_status(mesh, repr(prim))
-        if mesh.is_empty():
-            raise ModelError(f"to_mesh: manifold3d built an empty mesh for {prim!r}")
-        self.cache[key] = mesh
+        if mesh is None:
+            mesh = _primitive_mesh(prim, self.segments)
+            _check_status(mesh, repr(prim))
+            if mesh.is_empty():
+                raise ModelError(f"to_mesh: manifold3d built an empty mesh for {prim!r}")
+            self.cache[key] = mesh
         return mesh
+
+
+def _mesh_key(prim: Node) -> tuple:
+    if isinstance(prim, P.Prism):
+        return ("prism", prim.sides, prim.apothem, prim.height)
+    if isinstance(prim, P.ConvexPolyhedron):
+        return ("convex", id(prim.vertices))
+    if isinstance(prim, P.Sphere):
+        return ("sphere", prim.radius)
+    if isinstance(prim, P.Box):
+        return ("box", prim.size)
+    if isinstance(prim, P.Cone):
+        return ("cone", prim.radius_bottom, prim.radius_top, prim.height)
+    if isinstance(prim, P.Torus):
+        return ("torus", prim.major_radius, prim.minor_radius)
+    raise ModelError(f"to_mesh: no mesh for the primitive {prim!r}")
+
+
+def _primitive_mesh(prim: Node, n: int) -> m3.Manifold:
+    """The mesh of one primitive centred on its origin, z its axis (full lengths, as documented)."""
+    if isinstance(prim, P.Prism):
+        # A regular polygon with apothem a has its vertices at a / cos(pi / sides); a side faces +x.
+        k = np.arange(prim.sides)
+        angles = (k + 0.5) * 2.0 * np.pi / prim.sides
+        r = prim.apothem / np.cos(np.pi / prim.sides)
+        ring = np.stack([r * np.cos(angles), r * np.sin(angles)], 1)
+        z = np.full((prim.sides, 1), 0.5 * prim.height)
+        return m3.Manifold.hull_points(np.vstack([np.hstack([ring, -z]), np.hstack([ring, z])]))
+    if isinstance(prim, P.ConvexPolyhedron):
+        return m3.Manifold.hull_points(np.asarray(prim.vertices, dtype=np.float64))
+    if isinstance(prim, P.Sphere):
+        return m3.Manifold.sphere(prim.radius, n)
+    if isinstance(prim, P.Box):
+        return m3.Manifold.cube(tuple(prim.size), center=True)
+    if isinstance(prim, P.Cone):
+        return m3.Manifold.cylinder(prim.height, prim.radius_bottom, prim.radius_top, n, center=True)
+    tube = m3.CrossSection.circle(prim.minor_radius, n).translate((prim.major_radius, 0.0))
+    return m3.Manifold.revolve(tube, n)
 
 
 # ---- Mesh files ----

@@ -20,16 +20,17 @@ from __future__ import annotations
 import copy
 import json
 import math
-import os
 import re
 from json.decoder import scanstring
 
 import numpy as np
 
-from . import transform as tf
-from .errors import ModelError
-from .model import OPERATIONS, Node, Operation
-from .primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
+from ..errors import ModelError
+from ..model import transform as tf
+from ..model import values
+from ..model.nodes import OPERATIONS, Node, Operation
+from ..model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
+from .reading import FormatError, read_model_bytes
 
 FORMAT = "mitsuba-csg"
 VERSION = 1                      # the version `save` writes
@@ -37,10 +38,6 @@ SUPPORTED_VERSIONS = (1,)        # the versions `load` reads
 MAX_DEPTH = 10_000               # operation levels above a leaf (the root is at depth 0)
 MAX_NODES = 10_000_000           # nodes in one document, operations and primitives together
 MAX_MATERIAL_DEPTH = 64          # nesting of one material's BSDF dict
-
-
-class FormatError(ModelError):
-    """A native model document that cannot be read: the message starts with the source and the JSON path."""
 
 
 # ---- Paths and messages ----
@@ -164,34 +161,28 @@ def _list(value, source, path, what: str) -> list:
     return value
 
 
+def _checked(check, value, source, path, *args):
+    """A shared value check (`model.values`), its problem reported at the JSON path."""
+    if isinstance(value, _NonFinite):
+        _fail(source, path, f"must be finite, got {value.literal}")
+    try:
+        return check(value, *args, describe=_describe)
+    except values.ValueProblem as e:
+        _fail(source, path, str(e))
+
+
 def _number(value, source, path) -> float:
     if type(value) is float and math.isfinite(value):      # the common case, first
         return value
-    if isinstance(value, _NonFinite):
-        _fail(source, path, f"must be finite, got {value.literal}")
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
-        _fail(source, path, f"expected a number, got {_describe(value)}")
-    try:
-        v = float(value)
-    except OverflowError:
-        _fail(source, path, "must be finite, got an integer beyond the float range")
-    if not math.isfinite(v):
-        _fail(source, path, f"must be finite, got {_describe(v)}")
-    return v
+    return _checked(values.number, value, source, path)
 
 
 def _positive(value, source, path) -> float:
-    v = _number(value, source, path)
-    if v <= 0:
-        _fail(source, path, f"must be > 0, got {_describe(value)}")
-    return v
+    return _checked(values.positive, value, source, path)
 
 
 def _nonnegative(value, source, path) -> float:
-    v = _number(value, source, path)
-    if v < 0:
-        _fail(source, path, f"must be >= 0, got {_describe(value)}")
-    return v
+    return _checked(values.nonnegative, value, source, path)
 
 
 def _numbers(value, count: int, source, path, check=_number) -> list[float]:
@@ -202,11 +193,7 @@ def _numbers(value, count: int, source, path, check=_number) -> list[float]:
 
 
 def _integer(value, lo: int, hi: int, source, path) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        _fail(source, path, f"expected an integer in {lo}..{hi}, got {_describe(value)}")
-    if not lo <= value <= hi:
-        _fail(source, path, f"expected an integer in {lo}..{hi}, got {_describe(value)}")
-    return int(value)
+    return _checked(values.integer, value, source, path, lo, hi)
 
 
 def _name(value, source, path, what: str) -> str:
@@ -534,26 +521,6 @@ def from_dict_with_materials(data, source: str = "<dict>") -> tuple[Node, dict]:
 
 
 # ---- Reading: file -> document ----
-
-def read_model_bytes(path, max_bytes: int | None = None) -> tuple[bytes, str]:
-    """(contents, name for messages) of a model file, or one FormatError saying why not.
-
-    Shared by every loader, so a missing file or a directory reads the same in all formats.
-    """
-    source = os.fsdecode(path) if isinstance(path, (str, bytes, os.PathLike)) else repr(path)
-    try:
-        if max_bytes is not None and os.stat(path).st_size > max_bytes:
-            raise FormatError(f"{source}: {os.stat(path).st_size} bytes is larger than the limit of {max_bytes}")
-        with open(path, "rb") as f:
-            raw = f.read() if max_bytes is None else f.read(max_bytes + 1)
-    except FileNotFoundError:
-        raise FormatError(f"{source}: no such file") from None
-    except IsADirectoryError:
-        raise FormatError(f"{source}: is a directory, not a model file") from None
-    except (OSError, TypeError, ValueError) as e:
-        raise FormatError(f"{source}: cannot read the file ({getattr(e, 'strerror', None) or e})") from None
-    return raw, source
-
 
 def _read_text(path) -> tuple[str, str]:
     raw, source = read_model_bytes(path)

@@ -19,20 +19,19 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import primitives as P
-from .errors import ModelError
-from .model import DIFFERENCE, INTERSECTION, UNION, Node, Operation
+from ..errors import ModelError
+from ..model.nodes import DIFFERENCE, INTERSECTION, UNION, Node, Operation
+from . import layout as K
+from .shapes import primitive_bounds
 
-# Node kinds in the flat tree.
-K_UNION, K_INTERSECTION, K_DIFFERENCE, K_LEAF = 0, 1, 2, 3
-_KIND_CODE = {UNION: K_UNION, INTERSECTION: K_INTERSECTION, DIFFERENCE: K_DIFFERENCE}
+KIND_CODE = {UNION: K.UNION, INTERSECTION: K.INTERSECTION, DIFFERENCE: K.DIFFERENCE}
 
 
 @dataclass
 class FlatTree:
     """A binary CSG tree and its primitives as structure-of-arrays (float64, int64)."""
     # per node (preorder ids, root = 0)
-    node_kind: np.ndarray       # K_UNION / K_INTERSECTION / K_DIFFERENCE / K_LEAF
+    node_kind: np.ndarray       # layout.UNION / INTERSECTION / DIFFERENCE / LEAF
     node_negative: np.ndarray   # leaf: complemented; operation: co-bounded
     node_left: np.ndarray       # operation: left child id; leaf: primitive index
     node_right: np.ndarray      # operation: right child id; leaf: -1
@@ -41,7 +40,7 @@ class FlatTree:
     node_upper: np.ndarray
     node_height: np.ndarray     # operation levels below and including the node; leaves 0
     # per primitive, in `Model.leaves()` order
-    prim_shape: np.ndarray      # primitives.SPHERE ... CONVEX
+    prim_shape: np.ndarray      # layout.SPHERE ... CONVEX
     prim_to_canonical: np.ndarray  # (P, 3, 4) world -> canonical affine
     prim_to_world: np.ndarray      # (P, 4, 4) canonical -> world
     prim_param: np.ndarray      # (P, 2): cone radii (bottom, top) / max; torus minor/major
@@ -69,7 +68,7 @@ class FlatTree:
 
 # ---- Step 1-2: primitives and the n-ary item tree ----
 
-def _items(model: Node, prims: list):
+def item_tree(model: Node, prims: list):
     """Return the n-ary item tree: ('leaf', prim) or (kind, [items]); fills `prims`."""
     if not isinstance(model, Node):
         raise ModelError(f"expected a CSG model node, got {type(model).__name__}")
@@ -115,6 +114,17 @@ def _flattened(kind: str, kids: list):
 _FLIP = {UNION: INTERSECTION, INTERSECTION: UNION}
 
 
+def positive_operands(item, negate: bool):
+    """(operation, [(operand item, complemented)]) of an operation item, complemented if `negate`,
+    with no difference left (paper §4.1): a - r = a & ~r, ~(a - r) = ~a | r, and De Morgan.
+    """
+    op, kids = item
+    if op == DIFFERENCE:
+        first, rest = kids[0], kids[1:]
+        return (UNION if negate else INTERSECTION), [(first, negate)] + [(r, not negate) for r in rest]
+    return (_FLIP[op] if negate else op), [(k, negate) for k in kids]
+
+
 def _emit(root_item, positive: bool):
     kind, negative, left, right, parent = [], [], [], [], []
     # work: (spec, parent id, side); spec = ("item", item, neg) or ("range", op, [(item, neg)], lo, hi)
@@ -124,40 +134,33 @@ def _emit(root_item, positive: bool):
         if spec[0] == "item":
             _, item, neg = spec
             if item[0] == "leaf":
-                nid = _new_node(kind, negative, left, right, parent, K_LEAF, neg, par, side)
+                nid = new_node(kind, negative, left, right, parent, K.LEAF, neg, par, side)
                 left[nid] = item[1]
                 continue
             op, kids = item
-            if op == DIFFERENCE:
+            if op == DIFFERENCE and not (positive or neg):
                 a, rest = kids[0], kids[1:]
-                if positive or neg:
-                    # a - r = a & ~r ; ~(a - r) = ~a | r
-                    op = UNION if neg else INTERSECTION
-                    entries = [(a, neg)] + [(r, not neg) for r in rest]
-                    spec = ("range", op, entries, 0, len(entries))
-                else:
-                    nid = _new_node(kind, negative, left, right, parent, K_DIFFERENCE, False, par, side)
-                    right_spec = (("item", rest[0], False) if len(rest) == 1 else
-                                  ("range", UNION, [(r, False) for r in rest], 0, len(rest)))
-                    work.append((right_spec, nid, 1))
-                    work.append((("item", a, False), nid, 0))
-                    continue
-            else:
-                op = _FLIP[op] if neg else op
-                spec = ("range", op, [(k, neg) for k in kids], 0, len(kids))
+                nid = new_node(kind, negative, left, right, parent, K.DIFFERENCE, False, par, side)
+                right_spec = (("item", rest[0], False) if len(rest) == 1 else
+                              ("range", UNION, [(r, False) for r in rest], 0, len(rest)))
+                work.append((right_spec, nid, 1))
+                work.append((("item", a, False), nid, 0))
+                continue
+            op, entries = positive_operands(item, neg) if (positive or neg) else (op, [(k, False) for k in kids])
+            spec = ("range", op, entries, 0, len(entries))
         _, op, entries, lo, hi = spec
         if hi - lo == 1:
             work.append((("item", *entries[lo]), par, side))
             continue
         mid = (lo + hi) // 2
-        nid = _new_node(kind, negative, left, right, parent, _KIND_CODE[op], False, par, side)
+        nid = new_node(kind, negative, left, right, parent, KIND_CODE[op], False, par, side)
         work.append((("range", op, entries, mid, hi), nid, 1))
         work.append((("range", op, entries, lo, mid), nid, 0))
     return (np.array(kind, np.int64), np.array(negative, bool), np.array(left, np.int64),
             np.array(right, np.int64), np.array(parent, np.int64))
 
 
-def _new_node(kind, negative, left, right, parent, k, neg, par, side) -> int:
+def new_node(kind, negative, left, right, parent, k, neg, par, side) -> int:
     nid = len(kind)
     kind.append(k)
     negative.append(neg)
@@ -172,7 +175,7 @@ def _new_node(kind, negative, left, right, parent, k, neg, par, side) -> int:
 # ---- Step 4: primitive arrays and bounds ----
 
 def primitive_tree(prims) -> FlatTree:
-    """A FlatTree with the primitive arrays of `prims` (from `_items`) and no nodes yet."""
+    """A FlatTree with the primitive arrays of `prims` (from `item_tree`) and no nodes yet."""
     n = len(prims)
     shape = np.empty(n, np.int64)
     to_world = np.empty((n, 4, 4))
@@ -184,7 +187,7 @@ def primitive_tree(prims) -> FlatTree:
     materials = []
     for i, (prim, matrix, material) in enumerate(prims):
         canon, prm, planes = prim.canonical()
-        shape[i] = prim.shape
+        shape[i] = K.SHAPE_CODES[prim.canonical_shape]
         to_world[i] = matrix @ canon
         param[i] = prm
         materials.append(material)
@@ -216,32 +219,36 @@ def with_nodes(prims: FlatTree, kind, negative, left, right, parent) -> FlatTree
                    node_parent=parent, node_lower=lower_, node_upper=upper_, node_height=height, root=0)
 
 
-def primitive_bounds(shape, to_world, param, plane_start, plane_vertices):
-    """Exact world boxes: support functions of the canonical shapes under each affine map."""
-    A, c = to_world[:, :3, :3], to_world[:, :3, 3]
-    half = np.zeros_like(c)
-    lower, upper = c.copy(), c.copy()
-    rows = np.linalg.norm(A, axis=2)                      # |A_i.| : support of the unit ball
-    disc = np.sqrt(A[:, :, 0] ** 2 + A[:, :, 1] ** 2)     # support of the unit disc in z = 0
-    m = shape == P.SPHERE
-    half[m] = rows[m]
-    m = shape == P.BOX
-    half[m] = np.abs(A[m]).sum(axis=2)
-    m = shape == P.TORUS
-    half[m] = disc[m] + param[m, 0:1] * rows[m]
-    hm = (shape == P.SPHERE) | (shape == P.BOX) | (shape == P.TORUS)
-    lower[hm], upper[hm] = c[hm] - half[hm], c[hm] + half[hm]
-    m = shape == P.CONE                                   # hull of the two cap discs
-    axis = A[m][:, :, 2]
-    bottom_c, top_c = c[m] - axis, c[m] + axis
-    bottom_h, top_h = param[m, 0:1] * disc[m], param[m, 1:2] * disc[m]
-    lower[m] = np.minimum(bottom_c - bottom_h, top_c - top_h)
-    upper[m] = np.maximum(bottom_c + bottom_h, top_c + top_h)
-    for start, verts in plane_vertices.items():
-        m = (shape == P.CONVEX) & (plane_start == start)
-        world = np.einsum("nij,vj->nvi", A[m], verts) + c[m][:, None, :]
-        lower[m], upper[m] = world.min(axis=1), world.max(axis=1)
-    return lower, upper
+def with_primitive_transforms(flat: FlatTree, to_world: np.ndarray) -> FlatTree:
+    """`flat` with new canonical -> world matrices (P, 4, 4): primitive and node bounds re-derived."""
+    lower, upper = primitive_bounds(flat.prim_shape, to_world, flat.prim_param, flat.prim_plane_start,
+                                    flat.plane_vertices)
+    prims = replace(flat, prim_to_world=to_world, prim_to_canonical=np.linalg.inv(to_world)[:, :3, :],
+                    prim_lower=lower, prim_upper=upper)
+    return with_nodes(prims, flat.node_kind, flat.node_negative, flat.node_left, flat.node_right,
+                      flat.node_parent)
+
+
+def operation_boxes(is_union, child_lower, child_upper, child_negative, starts):
+    """Boxes and co-boundedness of operations from their operands' (positive form, paper §4.1).
+
+    Operation i has operands starts[i] .. starts[i+1] - 1 (at least one). An intersection is
+    bounded by the common box of its bounded operands, or, if all are co-bounded, co-bounded
+    by the hull of their boxes (~a & ~b = ~(a | b)). A union is co-bounded by the common box
+    of its co-bounded operands (~a | b = ~(a - b)), or, if all are bounded, bounded by the
+    hull. Returns (lower, upper, negative) per operation.
+    """
+    counts = np.diff(np.append(starts, len(child_negative)))
+    special = child_negative == np.repeat(is_union, counts)   # bounded in an intersection, co-bounded in a union
+    has_special = np.add.reduceat(special.astype(np.int64), starts) > 0
+    common_lo = np.maximum.reduceat(np.where(special[:, None], child_lower, -np.inf), starts)
+    common_hi = np.minimum.reduceat(np.where(special[:, None], child_upper, np.inf), starts)
+    hull_lo = np.minimum.reduceat(child_lower, starts)
+    hull_hi = np.maximum.reduceat(child_upper, starts)
+    lower = np.where(has_special[:, None], common_lo, hull_lo)
+    upper = np.where(has_special[:, None], common_hi, hull_hi)
+    negative = np.where(is_union, has_special, ~has_special)
+    return lower, upper, negative
 
 
 def _node_bounds(kind, negative, left, right, prim_lower, prim_upper):
@@ -252,13 +259,13 @@ def _node_bounds(kind, negative, left, right, prim_lower, prim_upper):
     level = 0
     while len(frontier):
         depth[frontier] = level
-        f_ops = frontier[kind[frontier] != K_LEAF]
+        f_ops = frontier[kind[frontier] != K.LEAF]
         frontier = np.concatenate([left[f_ops], right[f_ops]])
         level += 1
     lower = np.empty((n, 3))
     upper = np.empty((n, 3))
     height = np.zeros(n, np.int64)
-    leaves = kind == K_LEAF
+    leaves = kind == K.LEAF
     lower[leaves] = prim_lower[left[leaves]]
     upper[leaves] = prim_upper[left[leaves]]
     for d in range(depth.max(initial=0), -1, -1):
@@ -267,28 +274,11 @@ def _node_bounds(kind, negative, left, right, prim_lower, prim_upper):
             continue
         l, r, k = left[ids], right[ids], kind[ids]
         height[ids] = 1 + np.maximum(height[l], height[r])
-        nl, nr = negative[l], negative[r]
-        ll, lu, rl, ru = lower[l], upper[l], lower[r], upper[r]
-        box_union = (np.minimum(ll, rl), np.maximum(lu, ru))
-        box_inter = (np.maximum(ll, rl), np.minimum(lu, ru))
-        # Treat a difference as an intersection with the complement of its right child.
-        is_diff = k == K_DIFFERENCE
-        nr_eff = nr ^ is_diff
-        is_union = k == K_UNION
-        # bounded-ness of the result: union: both bounded; intersection: either bounded
-        neg = np.where(is_union, nl | nr_eff, nl & nr_eff)
-        # box choice, see the module docstring rules
-        use_union = np.where(is_union, ~nl & ~nr_eff, nl & nr_eff)
-        use_inter = np.where(is_union, nl & nr_eff, ~nl & ~nr_eff)
-        # one side co-bounded: a union is co-bounded by that side's box, an intersection
-        # is bounded by the other (bounded) side's box
-        use_left = np.where(is_union, nl & ~nr_eff, ~nl & nr_eff)
-        for dst, u, i_, lb, rb in ((lower, box_union[0], box_inter[0], ll, rl),
-                                   (upper, box_union[1], box_inter[1], lu, ru)):
-            dst[ids] = np.where(use_union[:, None], u,
-                       np.where(use_inter[:, None], i_,
-                       np.where(use_left[:, None], lb, rb)))
-        negative[ids] = neg
+        # A difference is an intersection with the complement of its right child.
+        children = np.stack([l, r], 1).ravel()
+        child_negative = np.stack([negative[l], negative[r] ^ (k == K.DIFFERENCE)], 1).ravel()
+        lower[ids], upper[ids], negative[ids] = operation_boxes(
+            k == K.UNION, lower[children], upper[children], child_negative, np.arange(0, 2 * len(ids), 2))
     return lower, upper, height, negative
 
 
@@ -325,5 +315,5 @@ def lowered_height(root_item) -> int:
 def lower(model: Node, positive: bool = False) -> FlatTree:
     """Flatten `model` into a FlatTree; `positive=True` gives the positive form."""
     prims: list = []
-    root_item = _items(model, prims)
+    root_item = item_tree(model, prims)
     return with_nodes(primitive_tree(prims), *_emit(root_item, positive))

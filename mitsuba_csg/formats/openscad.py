@@ -42,11 +42,12 @@ import warnings
 
 import numpy as np
 
-from . import transform as tf
-from .errors import ModelError
-from .model import DIFFERENCE, INTERSECTION, UNION, Node, Operation
-from .native import FormatError, read_model_bytes
-from .primitives import Box, Cone, ConvexPolyhedron, Sphere
+from ..errors import ModelError
+from ..model import transform as tf
+from ..model.nodes import DIFFERENCE, INTERSECTION, UNION, Node, Operation
+from ..model.polyhedra import convex_planes
+from ..model.primitives import Box, Cone, ConvexPolyhedron, Sphere
+from .reading import FormatError, read_model_bytes
 
 MAX_FILE_BYTES = 256 * 2 ** 20     # refuse larger files before reading them
 MAX_DEPTH = 10_000                 # nesting of statements
@@ -598,57 +599,6 @@ class _Evaluator:
             self.src.fail(st.pos, f"polyhedron: a convex polyhedron with {len(planes)} distinct faces; "
                                   f"mitsuba-csg allows at most {ConvexPolyhedron.MAX_PLANES}")
         return ConvexPolyhedron(planes)
-
-
-def convex_planes(points: np.ndarray, faces: list[list[int]]) -> tuple[np.ndarray | None, str | None]:
-    """Outward planes (n, d) of a closed convex polyhedron given by faces, or (None, reason).
-
-    Orientation-agnostic (OpenSCAD's faces are clockwise seen from outside, but the inside is
-    found from the centroid). Tolerances allow for the 6 significant digits of `.csg` numbers.
-    """
-    used = np.unique(np.fromiter((i for f in faces for i in f), dtype=np.int64))
-    p = points[used]
-    scale = max(float(np.max(np.abs(p))), float(np.max(np.ptp(p, axis=0))), 1e-300)
-    tol = 2e-5 * scale
-    # Closed, consistently oriented surface: every directed edge once, its reverse once.
-    edges: dict[tuple[int, int], int] = {}
-    for f in faces:
-        for a, b in zip(f, f[1:] + f[:1]):
-            edges[(a, b)] = edges.get((a, b), 0) + 1
-    for (a, b), n in edges.items():
-        if n != 1 or edges.get((b, a), 0) != 1:
-            return None, (f"a closed convex solid: its faces do not form a closed, consistently "
-                          f"oriented surface (edge between points {a} and {b})")
-    centre = p.mean(axis=0)
-    planes = []
-    for k, f in enumerate(faces):
-        v = points[f]
-        # Newell's normal: area-weighted, counter-clockwise positive.
-        nxt = np.roll(v, -1, axis=0)
-        normal = np.array([np.sum((v[:, 1] - nxt[:, 1]) * (v[:, 2] + nxt[:, 2])),
-                           np.sum((v[:, 2] - nxt[:, 2]) * (v[:, 0] + nxt[:, 0])),
-                           np.sum((v[:, 0] - nxt[:, 0]) * (v[:, 1] + nxt[:, 1]))])
-        length = np.linalg.norm(normal)
-        if length <= 1e-12 * scale * scale:
-            continue                                   # zero-area face: no plane
-        normal /= length
-        offset = float(normal @ v.mean(axis=0))
-        if np.max(np.abs(v @ normal - offset)) > tol:
-            return None, f"convex: face {k} is not planar"
-        if normal @ centre > offset:
-            normal, offset = -normal, -offset
-        if np.max(p @ normal - offset) > tol:
-            return None, f"convex: points lie outside the plane of face {k}"
-        planes.append(np.append(normal, offset))
-    if not planes:
-        return None, "a solid: no face has an area"
-    planes = np.array(planes)
-    unique = [planes[0]]
-    for row in planes[1:]:
-        u = np.array(unique)
-        if not np.any((np.abs(u[:, :3] @ row[:3] - 1) < 1e-9) & (np.abs(u[:, 3] - row[3]) < tol)):
-            unique.append(row)
-    return np.array(unique), None
 
 
 def _suppressed(st: _Statement) -> bool:

@@ -8,38 +8,28 @@ GDML and OpenSCAD); `radius`, `apothem` and `major_radius` are radii.
 """
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 
+from ..errors import ModelError
 from . import transform as tf
-from .errors import ModelError
-from .model import Primitive
-
-# Kernel shape codes (canonical shapes).
-SPHERE, BOX, CONE, TORUS, CONVEX = 0, 1, 2, 3, 4
-SHAPE_NAMES = {SPHERE: "sphere", BOX: "box", CONE: "cone", TORUS: "torus", CONVEX: "convex polyhedron"}
+from . import values
+from .polyhedra import MAX_PLANES, checked_polyhedron
+from .nodes import Primitive
 
 
 def _positive(value, what: str) -> float:
-    v = tf.number(value, what)
-    if v <= 0:
-        raise ModelError(f"{what}: must be > 0, got {v:g}")
-    return v
+    return values.checked(values.positive, value, what)
 
 
 def _nonnegative(value, what: str) -> float:
-    v = tf.number(value, what)
-    if v < 0:
-        raise ModelError(f"{what}: must be >= 0, got {v:g}")
-    return v
+    return values.checked(values.nonnegative, value, what)
 
 
 class Sphere(Primitive):
     """Sphere of `radius` centred on the origin."""
 
     __slots__ = ("radius",)
-    shape = SPHERE
+    canonical_shape = "sphere"
 
     def __init__(self, radius: float = 1.0, *, material: str | None = None):
         super().__init__(material=material)
@@ -56,7 +46,7 @@ class Box(Primitive):
     """Axis-aligned box of full edge lengths `size` (a number or (x, y, z)), centred on the origin."""
 
     __slots__ = ("size",)
-    shape = BOX
+    canonical_shape = "box"
 
     def __init__(self, size=(1.0, 1.0, 1.0), *, material: str | None = None):
         super().__init__(material=material)
@@ -81,7 +71,7 @@ class Cone(Primitive):
     """
 
     __slots__ = ("radius_bottom", "radius_top", "height")
-    shape = CONE
+    canonical_shape = "cone"
 
     def __init__(self, radius_bottom: float = 1.0, radius_top: float = 0.0, height: float = 1.0, *,
                  material: str | None = None):
@@ -124,7 +114,7 @@ class Torus(Primitive):
     """Ring torus around the z axis: tube of `minor_radius` swept along a circle of `major_radius`."""
 
     __slots__ = ("major_radius", "minor_radius")
-    shape = TORUS
+    canonical_shape = "torus"
 
     def __init__(self, major_radius: float = 1.0, minor_radius: float = 0.25, *, material: str | None = None):
         super().__init__(material=material)
@@ -151,12 +141,12 @@ class ConvexPolyhedron(Primitive):
     """
 
     __slots__ = ("planes", "vertices")
-    shape = CONVEX
-    MAX_PLANES = 256
+    canonical_shape = "convex"
+    MAX_PLANES = MAX_PLANES
 
     def __init__(self, planes, *, material: str | None = None):
         super().__init__(material=material)
-        self.planes, self.vertices = _checked_polyhedron(planes, type(self).__name__)
+        self.planes, self.vertices = checked_polyhedron(planes, type(self).__name__)
 
     def canonical(self):
         return tf.IDENTITY, (0.0, 0.0), self.planes
@@ -177,9 +167,7 @@ class Prism(ConvexPolyhedron):
 
     def __init__(self, sides: int = 6, apothem: float = 1.0, height: float = 1.0, *, material: str | None = None):
         Primitive.__init__(self, material=material)
-        if not isinstance(sides, (int, np.integer)) or isinstance(sides, bool) or not 3 <= sides <= 1000:
-            raise ModelError(f"Prism.sides: expected an integer in 3..1000, got {sides!r}")
-        self.sides = int(sides)
+        self.sides = values.checked(values.integer, sides, "Prism.sides", 3, 1000)
         self.apothem = _positive(apothem, "Prism.apothem")
         self.height = _positive(height, "Prism.height")
         # All prisms with the same number of sides share one set of canonical planes.
@@ -187,7 +175,7 @@ class Prism(ConvexPolyhedron):
             angles = 2.0 * np.pi * np.arange(self.sides) / self.sides
             sides_planes = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles), np.ones_like(angles)], 1)
             caps = np.array([[0.0, 0.0, 1.0, 1.0], [0.0, 0.0, -1.0, 1.0]])
-            self._unit_cache[self.sides] = _checked_polyhedron(np.vstack([sides_planes, caps]), "Prism")
+            self._unit_cache[self.sides] = checked_polyhedron(np.vstack([sides_planes, caps]), "Prism")
         self.planes, self.vertices = self._unit_cache[self.sides]
 
     def canonical(self):
@@ -197,52 +185,3 @@ class Prism(ConvexPolyhedron):
     def __repr__(self):
         return (f"Prism(sides={self.sides}, apothem={self.apothem:g}, height={self.height:g})"
                 f"{self._transform_repr()}")
-
-
-def _checked_polyhedron(planes, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """Unit-normal planes and the vertices of a bounded convex polyhedron with volume, or ModelError."""
-    p = np.asarray(planes, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 4:
-        raise ModelError(f"{name}.planes: expected rows (nx, ny, nz, d), got shape {p.shape}")
-    if not 4 <= len(p) <= ConvexPolyhedron.MAX_PLANES:
-        raise ModelError(f"{name}.planes: a closed convex solid needs 4..{ConvexPolyhedron.MAX_PLANES} planes, "
-                         f"got {len(p)}")
-    if not np.all(np.isfinite(p)):
-        raise ModelError(f"{name}.planes: NaN or infinite entries")
-    norms = np.linalg.norm(p[:, :3], axis=1)
-    if np.any(norms == 0):
-        raise ModelError(f"{name}.planes: plane {int(np.argmin(norms))} has a zero normal")
-    p = p / norms[:, None]
-    n, d = p[:, :3], p[:, 3]
-    scale = max(1.0, float(np.max(np.abs(d))))
-
-    # Bounded iff no direction y != 0 has n_i . y <= 0 for all i. Such a cone, if any, has an
-    # extreme ray along some n_i x n_j, or all normals are coplanar (rank < 3).
-    if np.linalg.matrix_rank(n, tol=1e-9) < 3:
-        raise ModelError(f"{name}: the planes do not enclose a bounded solid (normals are coplanar)")
-    i, j = np.triu_indices(len(n), 1)
-    dirs = np.cross(n[i], n[j])
-    dirs = dirs[np.linalg.norm(dirs, axis=1) > 1e-9]
-    dirs = np.vstack([dirs, -dirs])
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    if np.any(np.all(dirs @ n.T <= 1e-12, axis=1)):
-        raise ModelError(f"{name}: the planes do not enclose a bounded solid (it extends to infinity)")
-
-    # Vertices: feasible intersections of plane triples.
-    triples = np.fromiter(itertools.chain.from_iterable(itertools.combinations(range(len(n)), 3)),
-                          dtype=np.int64).reshape(-1, 3)
-    mats = n[triples]
-    with np.errstate(divide="ignore", invalid="ignore"):   # parallel planes give det 0
-        dets = np.linalg.det(mats)
-    ok = np.abs(dets) > 1e-10
-    pts = np.linalg.solve(mats[ok], d[triples[ok]][..., None])[..., 0]
-    pts = pts[np.all(pts @ n.T <= d + 1e-7 * scale, axis=1)]
-    if len(pts) < 4:
-        raise ModelError(f"{name}: the planes enclose no solid (empty or flat intersection)")
-    centred = pts - pts.mean(axis=0)
-    if np.linalg.matrix_rank(centred, tol=1e-9 * scale) < 3:
-        raise ModelError(f"{name}: the planes enclose a flat or empty set, not a solid")
-    verts = np.unique(np.round(pts, 12), axis=0)
-    p.setflags(write=False)
-    verts.setflags(write=False)
-    return p, verts

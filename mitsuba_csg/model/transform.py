@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import ModelError
+from ..errors import ModelError
+from . import values
 
 IDENTITY = np.eye(4)
 IDENTITY.setflags(write=False)
@@ -21,12 +22,7 @@ def _frozen(m: np.ndarray) -> np.ndarray:
 
 def number(value, what: str) -> float:
     """A finite float (bools refused), or a ModelError naming `what`."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ModelError(f"{what}: expected a number, got {value!r}")
-    v = float(value)
-    if not np.isfinite(v):
-        raise ModelError(f"{what}: must be finite, got {v}")
-    return v
+    return values.checked(values.number, value, what)
 
 
 def vector3(value, what: str) -> np.ndarray:

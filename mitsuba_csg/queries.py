@@ -1,7 +1,8 @@
-"""Tracing entry points: the Dr.Jit one (device arrays in and out) and the numpy helpers.
+"""The public ray queries: `prepare` a model once, then `trace_rays` (Dr.Jit arrays in and
+out, for integrators) or `trace` / `contains` (numpy in and out).
 
-`Scene`-free and Mitsuba-free: the integrators call `trace_rays` with the ray arrays of
-their own variant; `trace` and `contains` convert numpy arrays at the edges only.
+Scene-free: the integrators call `trace_rays` with the ray arrays of their own variant;
+`trace`, `contains` and `rays_to_device` convert numpy arrays at the edges only.
 """
 from __future__ import annotations
 
@@ -11,12 +12,16 @@ from dataclasses import dataclass
 import drjit as dr
 import numpy as np
 
-from . import intersect as X
-from . import primitives as P
+from .engine import layout as K
+from .engine.automaton import traverse
+from .engine.backend import Backend, default_backend
+from .engine.device import KernelTree, node_record, upload
+from .engine.hit_geometry import hit_normal
+from .engine.lowering import FlatTree, lower
+from .engine.optimize import OptimizedModel
+from .engine.optimize import optimize as optimize_tree
 from .errors import CSGError
-from .kernel import FLIP_BIT, NO_LEAF, KernelTree, backend_of, gather_prim, node_record, traverse, upload
-from .lowering import FlatTree, lower
-from .model import Node
+from .model.nodes import Node
 
 
 class IterationLimitWarning(RuntimeWarning):
@@ -37,8 +42,6 @@ def prepare(model, backend=None, *, optimize: bool = True, positive: bool = Fals
     `optimize=False` traces the input tree as written, chains of one operation balanced in
     input order; `positive=True` (with optimize=False) traces its positive form.
     """
-    from .optimize import OptimizedModel
-    from .optimize import optimize as optimize_tree
     if isinstance(model, Prepared):
         return model
     if backend is None:
@@ -56,11 +59,6 @@ def prepare(model, backend=None, *, optimize: bool = True, positive: bool = Fals
     return Prepared(flat, upload(flat, backend, max_iterations))
 
 
-def default_backend():
-    import mitsuba as mi
-    return backend_of(mi.Float)
-
-
 @dataclass
 class RayHits:
     """Per-ray results on the device (detached Dr.Jit arrays)."""
@@ -70,7 +68,7 @@ class RayHits:
     entering: object   # Bool: the ray enters the solid at the hit
     finished: object   # Bool: False where the iteration bound stopped the lane
     steps: object      # UInt32: automaton iterations per lane
-    info: object = None  # UInt32: class, flip bit and face of the hit (see kernel.py)
+    info: object = None  # UInt32: class, flip bit and face of the hit (engine.layout)
 
 
 def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf")) -> RayHits:
@@ -83,34 +81,12 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf")) -> RayHits
     tmin = dr.opaque(b.Float, tmin, n) if isinstance(tmin, (int, float)) else b.Float(dr.detach(tmin))
     tmax = dr.opaque(b.Float, tmax, n) if isinstance(tmax, (int, float)) else b.Float(dr.detach(tmax))
     t, leaf, info, finished, steps = traverse(tree, o, d, tmin, tmax)
-    hit = leaf != NO_LEAF
+    hit = leaf != K.NO_LEAF
     _, prim, _, _ = node_record(b, tree, leaf, hit)
     normal = hit_normal(tree, prim, info, o, d, dr.select(hit, t, 0.0), hit)
     t = dr.select(finished, t, dr.nan)
-    return RayHits(t=t, normal=normal, prim=dr.select(hit, prim, NO_LEAF),
-                   entering=hit & ((info & 3) == X.ENTER), finished=finished, steps=steps, info=info)
-
-
-def hit_normal(tree: KernelTree, prim, info, o, d, t, active):
-    """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`."""
-    b = tree.b
-    rows, shape, param, plane_start, _ = gather_prim(b, tree, prim, active)
-    p = o + t * d
-    p4 = b.Array4f(p.x, p.y, p.z, 1.0)
-    p_canonical = b.Array3f(dr.dot(rows[0], p4), dr.dot(rows[1], p4), dr.dot(rows[2], p4))
-    face = info >> 3
-    plane = dr.gather(b.Array4f, tree.planes, plane_start + face, active & (shape == P.CONVEX))
-    _, n_local = X.surface_function(b.module, shape, face, param, plane, p_canonical)
-    # normals transform with the inverse transpose of canonical -> world, i.e. M^T
-    n = (rows[0].x * n_local.x + rows[1].x * n_local.y + rows[2].x * n_local.z,
-         rows[0].y * n_local.x + rows[1].y * n_local.y + rows[2].y * n_local.z,
-         rows[0].z * n_local.x + rows[1].z * n_local.y + rows[2].z * n_local.z)
-    n = b.Array3f(*n)
-    n = dr.select((info & FLIP_BIT) != 0, -n, n) * dr.rsqrt(dr.squared_norm(n))
-    # At a cone apex the surface has no normal: face the ray (outward for its hit class).
-    facing = dr.normalize(dr.select((info & 3) == X.ENTER, -d, d))
-    n = dr.select(dr.isfinite(n.x) & dr.isfinite(n.y) & dr.isfinite(n.z), n, facing)
-    return dr.select(active, n, 0.0)
+    return RayHits(t=t, normal=normal, prim=dr.select(hit, prim, K.NO_LEAF),
+                   entering=hit & (K.info_class(info) == K.ENTER), finished=finished, steps=steps, info=info)
 
 
 # ---- numpy helpers ----
@@ -138,8 +114,10 @@ def _rays(a, what: str) -> np.ndarray:
     return arr
 
 
-def _to_array3(b, a: np.ndarray):
-    a32 = np.ascontiguousarray(a.T, dtype=np.float32)
+def rays_to_device(array, backend: Backend | None = None):
+    """An (N, 3) numpy array as a Dr.Jit Array3f (float32) of `backend` (default: Mitsuba's variant)."""
+    b = backend or default_backend()
+    a32 = np.ascontiguousarray(np.asarray(array, dtype=np.float64).reshape(-1, 3).T, dtype=np.float32)
     return b.Array3f(b.Float(a32[0]), b.Float(a32[1]), b.Float(a32[2]))
 
 
@@ -163,10 +141,10 @@ def trace(model, origins, directions, tmin: float = 0.0, tmax: float = np.inf, *
     if len(o) == 0:
         return Hits(np.zeros(0, np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int64),
                     np.zeros(0, bool), 0, np.zeros(0, np.uint32))
-    hits = trace_rays(prepared, _to_array3(b, o), _to_array3(b, d), float(tmin), float(tmax))
+    hits = trace_rays(prepared, rays_to_device(o, b), rays_to_device(d, b), float(tmin), float(tmax))
     dr.eval(hits.t, hits.normal, hits.prim, hits.entering, hits.finished, hits.steps)
     prim = hits.prim.numpy().astype(np.int64)
-    prim[prim == NO_LEAF] = -1
+    prim[prim == K.NO_LEAF] = -1
     unfinished = int(np.count_nonzero(~hits.finished.numpy()))
     if unfinished:
         warnings.warn(f"{unfinished} of {len(o)} rays reached the iteration bound "

@@ -1,31 +1,47 @@
-"""The single-hit CSG automaton (Kensler's state tables, iterated as in Bogolepov et al. 2013).
+"""The single-hit CSG automaton: Kensler's state tables, iterated as in Bogolepov et al. 2013.
 
-One symbolic Dr.Jit loop per ray batch walks the binary tree with two per-lane stacks:
-a hit stack (t, leaf node, hit info) and a state stack (what to do when a subtree's hit
-comes back). Each iteration does at most one GoTo step (one box test and at most one
-primitive intersection, or a descent), one Classify step (a state-table lookup) and one
-Return step (pop and hand the hit to the parent), so lanes stay in step.
+`docs/algorithm.md` explains the algorithm; this module is its kernel and nothing else (the
+buffers it reads are built by `engine.device`, the primitives are intersected by
+`engine.shapes`, word layouts are in `engine.layout`).
 
-Hit info word: bits 0-1 class (enter / exit / miss) relative to the subtree the hit was
-returned from, bit 2 flips the primitive's normal (complemented leaf or the right side of
-a difference, an odd number of times), bits 3.. the face within the primitive.
+One symbolic Dr.Jit loop per ray batch walks the binary tree with two per-lane stacks of
+the tree's height: a hit stack (t, leaf node, hit info) and a state stack (what to do when
+a subtree's hit comes back). Each iteration does at most one GoTo step (one box test and at
+most one primitive intersection, or a descent), one Classify step (a state-table lookup)
+and one Return step (pop and hand the hit to the parent), so lanes stay in step.
+
+Registers: `node` (the operation whose children are in play), `t_start` (events must lie
+strictly after it), the left and right hits (t, leaf, info) and the GoTo/Classify/Return
+state. A frame is pushed when GoTo descends into an operation child, and popped when that
+child's subtree returns its hit (which then sits in both hit registers):
+
+=========  ===========================  ===================================  ==============================
+frame      pushed by                    hit stack entry holds                when popped
+=========  ===========================  ===================================  ==============================
+SAVE_L     GoTo left, fresh             the parent's `t_start`               the hit is the left child's:
+                                        (leaf and info unused)               restore `t_start`, GoTo right
+                                                                             fresh
+LOAD_L     GoTo right (fresh or loop)   the left child's hit, which the      the hit is the right child's:
+                                        right subtree overwrites             reload the left hit, Classify
+LOAD_R     GoTo left after a loop       the right child's hit                the hit is the left child's:
+                                                                             reload the right hit, Classify
+=========  ===========================  ===================================  ==============================
+
+A pop at stack depth 0 ends the lane (DONE) with the root's hit in the left register.
 """
 from __future__ import annotations
-
-import sys
-from dataclasses import dataclass
 
 import drjit as dr
 import numpy as np
 
-from . import intersect as X
-from .errors import TreeTooDeepError
-from .intersect import ENTER, EXIT, MISS, Backend
-from .lowering import K_DIFFERENCE, K_INTERSECTION, K_LEAF, K_UNION, FlatTree
+from . import layout as K
+from . import shapes
+from .device import KernelTree, gather_prim, node_record
+from .layout import DIFFERENCE, ENTER, EXIT, FLIP_BIT, INTERSECTION, LEAF, MISS, NO_LEAF, UNION
 
 # Automaton states (GoTo states: bit 0 = right child, bit 1 = re-intersection after a loop).
 GOTO_L_FRESH, GOTO_R_FRESH, GOTO_L_LOOP, GOTO_R_LOOP, CLASSIFY, RETURN, DONE = range(7)
-# What a pushed frame does when the subtree's hit comes back.
+# What a pushed frame does when the subtree's hit comes back (see the table above).
 SAVE_L, LOAD_L, LOAD_R = range(3)
 
 # Actions of the state tables.
@@ -35,119 +51,20 @@ _E, _X, _M = ENTER, EXIT, MISS
 # (returning the farther exit is wrong once a child is non-convex or disjoint). A difference
 # uses the intersection table with the right child's class complemented.
 STATE_TABLE = {
-    K_UNION: {(_E, _E): RET_CLOSER, (_E, _X): RET_R_ELSE_LOOP_L, (_E, _M): RET_L,
-              (_X, _E): RET_L_ELSE_LOOP_R, (_X, _X): LOOP_CLOSER, (_X, _M): RET_L,
-              (_M, _E): RET_R, (_M, _X): RET_R, (_M, _M): RET_MISS},
-    K_INTERSECTION: {(_E, _E): LOOP_CLOSER, (_E, _X): RET_L_ELSE_LOOP_R, (_E, _M): RET_MISS,
-                     (_X, _E): RET_R_ELSE_LOOP_L, (_X, _X): RET_CLOSER, (_X, _M): RET_MISS,
-                     (_M, _E): RET_MISS, (_M, _X): RET_MISS, (_M, _M): RET_MISS},
+    UNION: {(_E, _E): RET_CLOSER, (_E, _X): RET_R_ELSE_LOOP_L, (_E, _M): RET_L,
+            (_X, _E): RET_L_ELSE_LOOP_R, (_X, _X): LOOP_CLOSER, (_X, _M): RET_L,
+            (_M, _E): RET_R, (_M, _X): RET_R, (_M, _M): RET_MISS},
+    INTERSECTION: {(_E, _E): LOOP_CLOSER, (_E, _X): RET_L_ELSE_LOOP_R, (_E, _M): RET_MISS,
+                   (_X, _E): RET_R_ELSE_LOOP_L, (_X, _X): RET_CLOSER, (_X, _M): RET_MISS,
+                   (_M, _E): RET_MISS, (_M, _X): RET_MISS, (_M, _M): RET_MISS},
 }
-_TABLE_ARRAY = np.array([[STATE_TABLE[op][(cl, cr)] for cl in range(3) for cr in range(3)]
-                         for op in (K_UNION, K_INTERSECTION)], dtype=np.uint32).ravel()
-
-NO_LEAF = 0xFFFFFFFF
-MAX_STACK = 1024
-FLIP_BIT = 4
+TABLE_ARRAY = np.array([[STATE_TABLE[op][(cl, cr)] for cl in range(3) for cr in range(3)]
+                        for op in (UNION, INTERSECTION)], dtype=np.uint32).ravel()
 
 
-def backend_of(array) -> Backend:
-    """The detached backend module (drjit.llvm / drjit.cuda) of a Dr.Jit array or type."""
-    tp = array if isinstance(array, type) else type(array)
-    backend = dr.backend_v(tp)
-    if backend == dr.JitBackend.LLVM:
-        name = "drjit.llvm"
-    elif backend == dr.JitBackend.CUDA:
-        name = "drjit.cuda"
-    else:
-        raise TypeError(f"mitsuba-csg kernels need a JIT array type (LLVM or CUDA), got {tp.__name__}")
-    return Backend(sys.modules[name])
-
-
-@dataclass
-class KernelTree:
-    """A FlatTree on the device: structure-of-arrays with explicit strides."""
-    b: Backend
-    # Records have power-of-two sizes so that Dr.Jit turns each gather into packet loads.
-    node_record: object     # UInt32, 4 per node: flags (kind | negative << 2), left child or
-                            #   primitive index, right child, parent
-    node_box: object        # Float, 8 per node: lower xyz, 0, upper xyz, 0 (padded outwards)
-    prim_record: object     # Float, 16 per primitive: world -> canonical rows (12), two shape
-                            #   parameters, plane start and (count | shape << 16) as bits
-    planes: object          # Float, 4 per plane
-    table: object           # UInt32 state table, 18 entries
-    root: int
-    root_is_leaf: bool
-    stack_size: int
-    num_nodes: int
-    num_prims: int
-    max_iterations: int
-
-
-def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None) -> KernelTree:
-    """Copy a FlatTree to device arrays (float32). A lone leaf gets a virtual union root."""
-    b = backend
-    kind, neg = flat.node_kind.copy(), flat.node_negative.copy()
-    left, right, parent = flat.node_left.copy(), flat.node_right.copy(), flat.node_parent.copy()
-    lower, upper = flat.node_lower.copy(), flat.node_upper.copy()
-    root_is_leaf = bool(kind[flat.root] == K_LEAF)
-    if root_is_leaf:
-        # root' = union(leaf, nothing): the dummy leaf has an empty box and always misses.
-        n = len(kind)
-        kind = np.concatenate([kind, [K_UNION, K_LEAF]])
-        neg = np.concatenate([neg, [False, False]])
-        left = np.concatenate([left, [flat.root, 0]])
-        right = np.concatenate([right, [n + 1, -1]])
-        parent = np.concatenate([parent, [-1, n]])
-        parent[flat.root] = n
-        lower = np.vstack([lower, lower[flat.root], [np.inf] * 3])
-        upper = np.vstack([upper, upper[flat.root], [-np.inf] * 3])
-        root = n
-    else:
-        root = flat.root
-    height = int(flat.node_height.max(initial=0)) + (1 if root_is_leaf else 0)
-    if height > MAX_STACK:
-        raise TreeTooDeepError(f"the CSG tree is {height} operations deep; the kernel allows {MAX_STACK}. "
-                               "Optimize it (csg.optimize) or restructure it.")
-    # Pad boxes outwards so float32 rounding never culls a hit on the box boundary.
-    with np.errstate(invalid="ignore", over="ignore"):
-        pad = 1e-5 * (upper - lower) + 1e-6 * np.maximum(np.abs(lower), np.abs(upper)) + 1e-30
-    pad = np.where(np.isfinite(pad) & (upper >= lower), pad, 0.0)
-    zeros = np.zeros((len(lower), 1))
-    box = np.hstack([lower - pad, zeros, upper + pad, zeros]).astype(np.float32)
-    flags = kind.astype(np.uint32) | (neg.astype(np.uint32) << 2)
-    node_record = np.stack([flags, left, np.where(right < 0, 0, right), np.where(parent < 0, 0, parent)], 1)
-    prim_record = np.zeros((flat.num_prims, 16), np.float32)
-    prim_record[:, :12] = flat.prim_to_canonical.reshape(-1, 12)
-    prim_record[:, 12:14] = flat.prim_param
-    ints = np.stack([flat.prim_plane_start, flat.prim_plane_count | (flat.prim_shape << 16)], 1)
-    prim_record[:, 14:16] = ints.astype(np.uint32).view(np.float32)
-    planes = flat.planes if len(flat.planes) else np.zeros((1, 4))
-    n_nodes = len(kind)
-    if max_iterations is None:
-        # Every loop step consumes a distinct primitive event; each event can be re-derived
-        # once per ancestor. This bound is far above any real ray and only stops runaways.
-        max_iterations = int(min(2**31 - 1, 64 + 8 * n_nodes * (height + 2)))
-    return KernelTree(
-        b=b, node_record=b.UInt32(node_record.astype(np.uint32).ravel()), node_box=b.Float(box.ravel()),
-        prim_record=b.Float(prim_record.ravel()),
-        planes=b.Float(planes.astype(np.float32).ravel()), table=b.UInt32(_TABLE_ARRAY),
-        root=int(root), root_is_leaf=root_is_leaf, stack_size=max(1, height), num_nodes=n_nodes,
-        num_prims=flat.num_prims, max_iterations=max_iterations)
-
-
-def gather_prim(b, tree, prim, active=True):
-    """(rows of world -> canonical, shape, params, plane start, plane count) of primitives."""
-    rec = dr.gather(b.module.ArrayXf, tree.prim_record, prim, active, shape=(16, dr.width(prim)))
-    rows = [b.Array4f(rec[4 * r], rec[4 * r + 1], rec[4 * r + 2], rec[4 * r + 3]) for r in range(3)]
-    start = dr.reinterpret_array(b.UInt32, rec[14])
-    count_shape = dr.reinterpret_array(b.UInt32, rec[15])
-    return rows, count_shape >> 16, (rec[12], rec[13]), start, count_shape & 0xFFFF
-
-
-def node_record(b, tree, node, active=True):
-    """(flags, left or primitive, right, parent) of nodes."""
-    rec = dr.gather(b.module.Array4u, tree.node_record, node, active)
-    return rec[0], rec[1], rec[2], rec[3]
+def _complement_class(cls):
+    """The class of the same event for the complement: enter <-> exit, a miss is an exit at infinity."""
+    return dr.select(cls == MISS, EXIT, cls ^ 1)
 
 
 def _box_hit(b, tree, node, o, inv_d, t_start, tmax, active):
@@ -163,12 +80,11 @@ def _box_hit(b, tree, node, o, inv_d, t_start, tmax, active):
 def _leaf_hit(b, tree, flags, prim, o, d, t_start):
     """(t, info) of a leaf node's first event after t_start, complement applied."""
     rows, shape, param, plane_start, plane_count = gather_prim(b, tree, prim)
-    t, face, cls = X.first_event(b, shape, rows, param, tree.planes, plane_start, plane_count, o, d, t_start)
-    complemented = (flags & 4) != 0
+    t, face, cls = shapes.first_event(b, shape, rows, param, tree.planes, plane_start, plane_count, o, d, t_start)
+    complemented = K.flags_negative(flags)
     # A complemented leaf swaps enter/exit; missing it means being inside it forever.
-    cls = dr.select(complemented, dr.select(cls == MISS, EXIT, cls ^ 1), cls)
-    info = cls | dr.select(complemented, FLIP_BIT, 0) | (face << 3)
-    return t, info
+    cls = dr.select(complemented, _complement_class(cls), cls)
+    return t, K.hit_info(cls, dr.select(complemented, FLIP_BIT, 0), face)
 
 
 @dr.syntax
@@ -178,7 +94,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     n = dr.width(o.x)
     inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
 
-    # ---- Loop state (all full width: see the Dr.Jit 1.5 local-index bug in DESIGN.md) ----
+    # ---- Loop state (all full width: Dr.Jit 1.5 local-index bug, tests/test_drjit_workarounds.py) ----
     node = dr.full(b.UInt32, tree.root, n)         # operation node whose children are in play
     t_start = b.Float(tmin)                         # re-intersection starts strictly after this
     t_l, leaf_l, info_l = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
@@ -207,7 +123,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         go_right = (state & 1) == 1
         child = dr.select(go_right, node_right, node_left)
         child_flags, child_prim, _, _ = node_record(b, tree, child, going)
-        child_is_leaf = (child_flags & 3) == K_LEAF
+        child_is_leaf = K.flags_kind(child_flags) == LEAF
         in_box = going & _box_hit(b, tree, child, o, inv_d, t_start, tmax, going)
         # Descend into an operation child: push what to do with its hit when it comes back.
         descend = in_box & ~child_is_leaf
@@ -220,7 +136,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         node = dr.select(descend, child, node)
         # A leaf, or a subtree whose box the ray misses from here on: its hit is known now.
         t_c = dr.full(b.Float, dr.inf, n)
-        info_c = dr.select((child_flags & 4) != 0, b.UInt32(EXIT), b.UInt32(MISS))   # co-bounded: inside forever
+        info_c = dr.select(K.flags_negative(child_flags), b.UInt32(EXIT), b.UInt32(MISS))   # co-bounded: inside forever
         if in_box & child_is_leaf:
             t_c, info_c = _leaf_hit(b, tree, child_flags, child_prim, o, d, t_start)
         known = going & ~descend
@@ -232,13 +148,13 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
 
         # ---- Classify: apply the state table of `node` ----
         classify = state == CLASSIFY
-        kind = flags & 3
-        is_diff = kind == K_DIFFERENCE
-        cls_l = info_l & 3
-        cls_r = info_r & 3
+        kind = K.flags_kind(flags)
+        is_diff = kind == DIFFERENCE
+        cls_l = K.info_class(info_l)
+        cls_r = K.info_class(info_r)
         # L - R = L & ~R: complement R's class (a miss of R is an exit at infinity)
-        cls_r = dr.select(is_diff, dr.select(cls_r == MISS, EXIT, cls_r ^ 1), cls_r)
-        table_op = dr.select(kind == K_UNION, 0, 1)
+        cls_r = dr.select(is_diff, _complement_class(cls_r), cls_r)
+        table_op = dr.select(kind == UNION, 0, 1)
         action = dr.gather(b.UInt32, tree.table, table_op * 9 + cls_l * 3 + cls_r, classify)
         # Ties: a return needs its hit strictly closer, except RET_CLOSER. Where an enter of one
         # child meets an exit of the other at the same t (touching or coincident faces), the
@@ -257,7 +173,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         ret_miss = classify & ~(ret_l | ret_r | loop_l | loop_r)
         # A returned right hit of a difference changes class and flips its normal.
         flip = dr.select(is_diff, FLIP_BIT, 0)
-        info_r_out = (info_r & ~b.UInt32(3 | FLIP_BIT)) | cls_r | ((info_r & FLIP_BIT) ^ flip)
+        info_r_out = K.with_class(info_r, cls_r, flip)
         # The returned hit goes into both registers (the parent's frame picks the slot).
         res_t = dr.select(ret_r, t_r, dr.select(ret_l, t_l, dr.inf))
         res_leaf = dr.select(ret_r, leaf_r, dr.select(ret_l, leaf_l, NO_LEAF))
@@ -288,6 +204,6 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         state = dr.select(at_root, DONE, dr.select(save_l, GOTO_R_FRESH, dr.select(popping, CLASSIFY, state)))
 
     finished = state == DONE
-    hit = finished & ((info_l & 3) != MISS) & (t_l <= tmax)
+    hit = finished & (K.info_class(info_l) != MISS) & (t_l <= tmax)
     t = dr.select(hit, t_l, dr.inf)
     return t, dr.select(hit, leaf_l, NO_LEAF), info_l, finished, steps

@@ -11,8 +11,8 @@ from typing import Iterator
 
 import numpy as np
 
+from ..errors import ModelError
 from . import transform as tf
-from .errors import ModelError
 
 UNION, INTERSECTION, DIFFERENCE = "union", "intersection", "difference"
 OPERATIONS = (UNION, INTERSECTION, DIFFERENCE)
@@ -88,7 +88,7 @@ class Node:
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """World axis-aligned box (lower, upper) of the solid, exact for primitives."""
-        from .lowering import lower
+        from ..engine.lowering import lower     # exact primitive boxes live with the engine's shapes
         flat = lower(self)
         return flat.node_lower[flat.root].copy(), flat.node_upper[flat.root].copy()
 
@@ -110,7 +110,7 @@ class Node:
 
 
 class Primitive(Node):
-    """A closed analytic solid in its local frame (see `mitsuba_csg.primitives`)."""
+    """A closed analytic solid in its local frame (see `mitsuba_csg.model.primitives`)."""
 
     __slots__ = ()
 

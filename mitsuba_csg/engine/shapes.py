@@ -8,28 +8,24 @@ float bit for bit, and "strictly after" needs no epsilon and always makes progre
 
 Faces: sphere 0; box 2*axis + (1 on the + side); cone 0 side, 1 bottom, 2 top; torus 0;
 convex polyhedron: the plane's index within the primitive.
+
+`SHAPES` is the table of canonical shapes: for each, its interval along a ray (Dr.Jit),
+its surface function (Dr.Jit, detached or AD) and its world bounds under an affine map
+(numpy). A new primitive adds one row here, a code in `engine.layout`, and its tests.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import drjit as dr
+import numpy as np
 
-from . import primitives as P
-
-ENTER, EXIT, MISS = 0, 1, 2
+from .layout import BOX, CONE, CONVEX, ENTER, EXIT, MISS, SPHERE, TORUS
 
 # Acceptance slack for cone side/cap candidates near the rim (canonical units).
 _RIM_SLACK = 1e-5
 # Newton-bisection steps per bracketed root of the torus quartic (and its derivative).
 _TORUS_STEPS = 16
-
-
-class Backend:
-    """The detached Dr.Jit types of one backend (drjit.llvm or drjit.cuda)."""
-
-    def __init__(self, module):
-        self.Float, self.UInt32, self.Bool = module.Float, module.UInt32, module.Bool
-        self.Array3f, self.Array4f = module.Array3f, module.Array4f
-        self.module = module
 
 
 def _interval_event(b, near, far, near_face, far_face, t_start):
@@ -43,7 +39,9 @@ def _interval_event(b, near, far, near_face, far_face, t_start):
     return t, face, cls
 
 
-def _sphere(b, o, d):
+# ---- Intervals: (near, far, near face, far face) of the ray inside the canonical solid ----
+
+def _sphere(b, o, d, param, plane_buf, start, count):
     a = dr.squared_norm(d)
     tc = -dr.dot(o, d) / a
     pc = o + tc * d                      # closest approach: robust for far-away origins
@@ -51,10 +49,11 @@ def _sphere(b, o, d):
     h = dr.sqrt(dr.maximum(h2, 0.0))
     near = dr.select(h2 > 0, tc - h, dr.inf)
     far = dr.select(h2 > 0, tc + h, -dr.inf)
-    return near, far
+    face = dr.zeros(b.UInt32, dr.width(a))
+    return near, far, face, face
 
 
-def _box(b, o, d):
+def _box(b, o, d, param, plane_buf, start, count):
     near, far = dr.full(b.Float, -dr.inf, dr.width(o.x)), dr.full(b.Float, dr.inf, dr.width(o.x))
     near_face = dr.zeros(b.UInt32, dr.width(o.x))
     far_face = dr.zeros(b.UInt32, dr.width(o.x))
@@ -76,7 +75,7 @@ def _box(b, o, d):
     return near, far, near_face, far_face
 
 
-def _cone(b, o, d, param):
+def _cone(b, o, d, param, plane_buf, start, count):
     # Side: x^2 + y^2 = r(z)^2 with r(z) = a + c z, |z| <= 1; caps at z = -1 (radius p0), +1 (p1).
     p0, p1 = param[0], param[1]
     a, c = 0.5 * (p0 + p1), 0.5 * (p1 - p0)
@@ -114,7 +113,7 @@ def _cone(b, o, d, param):
 
 
 @dr.syntax
-def _convex(b, o, d, plane_buf, start, count):
+def _convex(b, o, d, param, plane_buf, start, count):
     near = dr.full(b.Float, -dr.inf, dr.width(start))
     far = dr.full(b.Float, dr.inf, dr.width(start))
     near_face = dr.zeros(b.UInt32, dr.width(start))
@@ -235,16 +234,11 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
     t = dr.full(b.Float, dr.inf, width)
     face = dr.zeros(b.UInt32, width)
     cls = dr.full(b.UInt32, MISS, width)
-    if shape == P.SPHERE:
-        near, far = _sphere(b, o, d)
-    elif shape == P.BOX:
-        near, far, near_face, far_face = _box(b, o, d)
-    elif shape == P.CONE:
-        near, far, near_face, far_face = _cone(b, o, d, param)
-    elif shape == P.CONVEX:
-        near, far, near_face, far_face = _convex(b, o, d, plane_buf, plane_start, plane_count)
-    else:
-        # Torus: pick the first root after t_start; its parity among roots is its class.
+    for kind in _INTERVAL_SHAPES:
+        if shape == kind.code:
+            near, far, near_face, far_face = kind.interval(b, o, d, param, plane_buf, plane_start, plane_count)
+    if shape == TORUS:
+        # Pick the first root after t_start; its parity among the roots is its class.
         events, oks = _torus_events(b, o, d, param)
         seen = dr.zeros(b.UInt32, width)
         found = dr.zeros(b.Bool, width)
@@ -254,7 +248,7 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
             cls = dr.select(take, seen & 1, cls)
             found |= take
             seen += dr.select(ok, 1, 0)
-    if shape != P.TORUS:
+    else:
         t, face, cls = _interval_event(b, near, far, near_face, far_face, t_start)
     return t, face, cls
 
@@ -265,39 +259,124 @@ def surface_function(m, shape, face, param, plane, x):
     `m` is a Dr.Jit module (detached or AD) and `plane` the face's plane for convex primitives.
     grad g is the outward (unnormalized) normal: the hit normal and its derivatives use it.
     """
+    g = grad = None
+    for kind in SHAPES:
+        g_k, grad_k = kind.surface(m, face, param, plane, x)
+        g = g_k if g is None else dr.select(shape == kind.code, g_k, g)
+        grad = grad_k if grad is None else dr.select(shape == kind.code, grad_k, grad)
+    return g, grad
+
+
+# ---- Surface functions: (g, grad g) at a canonical point x on `face` ----
+
+def _sphere_surface(m, face, param, plane, x):
+    return dr.squared_norm(x) - 1.0, 2.0 * x
+
+
+def _box_surface(m, face, param, plane, x):
     zero = dr.zeros(m.Float, dr.width(x.x))
-    # sphere
-    g = dr.squared_norm(x) - 1.0
-    grad = 2.0 * x
-    # box: face 2*axis + side
-    axis, plus = face // 2, (face & 1) == 1
+    axis, plus = face // 2, (face & 1) == 1           # face 2*axis + side
     sign = dr.select(plus, 1.0, -1.0)
     coord = dr.select(axis == 0, x.x, dr.select(axis == 1, x.y, x.z))
     unit = m.Array3f(dr.select(axis == 0, sign, zero), dr.select(axis == 1, sign, zero),
                      dr.select(axis == 2, sign, zero))
-    box_g = sign * coord - 1.0
-    # cone: side 0, bottom 1, top 2
-    a, c = 0.5 * (param[0] + param[1]), 0.5 * (param[1] - param[0])
+    return sign * coord - 1.0, unit
+
+
+def _cone_surface(m, face, param, plane, x):
+    zero = dr.zeros(m.Float, dr.width(x.x))
+    a, c = 0.5 * (param[0] + param[1]), 0.5 * (param[1] - param[0])   # side 0, bottom 1, top 2
     r = a + c * x.z
     side_g = x.x * x.x + x.y * x.y - r * r
     side_grad = m.Array3f(2.0 * x.x, 2.0 * x.y, -2.0 * c * r)
     cap_sign = dr.select(face == 1, -1.0, 1.0)
-    cone_g = dr.select(face == 0, side_g, cap_sign * x.z - 1.0)
-    cone_grad = dr.select(face == 0, side_grad, m.Array3f(zero, zero, cap_sign + zero))
-    # torus (major 1, minor k)
-    k = param[0]
+    return (dr.select(face == 0, side_g, cap_sign * x.z - 1.0),
+            dr.select(face == 0, side_grad, m.Array3f(zero, zero, cap_sign + zero)))
+
+
+def _torus_surface(m, face, param, plane, x):
+    k = param[0]                                       # major radius 1, minor k
     s = dr.squared_norm(x) + 1.0 - k * k
-    torus_g = s * s - 4.0 * (x.x * x.x + x.y * x.y)
-    torus_grad = m.Array3f(4.0 * s * x.x - 8.0 * x.x, 4.0 * s * x.y - 8.0 * x.y, 4.0 * s * x.z)
-    # convex polyhedron: the face's plane
-    n = m.Array3f(plane.x, plane.y, plane.z)
-    plane_g = dr.dot(n, x) - plane.w
-    g = dr.select(shape == P.BOX, box_g, g)
-    grad = dr.select(shape == P.BOX, unit, grad)
-    g = dr.select(shape == P.CONE, cone_g, g)
-    grad = dr.select(shape == P.CONE, cone_grad, grad)
-    g = dr.select(shape == P.TORUS, torus_g, g)
-    grad = dr.select(shape == P.TORUS, torus_grad, grad)
-    g = dr.select(shape == P.CONVEX, plane_g, g)
-    grad = dr.select(shape == P.CONVEX, n, grad)
-    return g, grad
+    return (s * s - 4.0 * (x.x * x.x + x.y * x.y),
+            m.Array3f(4.0 * s * x.x - 8.0 * x.x, 4.0 * s * x.y - 8.0 * x.y, 4.0 * s * x.z))
+
+
+def _convex_surface(m, face, param, plane, x):
+    n = m.Array3f(plane.x, plane.y, plane.z)           # the face's plane
+    return dr.dot(n, x) - plane.w, n
+
+
+# ---- World bounds: exact boxes of the canonical solids under x -> A x + c (numpy) ----
+
+def _sphere_bounds(A, c, param, plane_start, plane_vertices):
+    half = np.linalg.norm(A, axis=2)                   # |A_i.|: support of the unit ball
+    return c - half, c + half
+
+
+def _box_bounds(A, c, param, plane_start, plane_vertices):
+    half = np.abs(A).sum(axis=2)
+    return c - half, c + half
+
+
+def _disc_support(A):
+    """Support of the unit disc in z = 0 under A, per world axis."""
+    return np.sqrt(A[:, :, 0] ** 2 + A[:, :, 1] ** 2)
+
+
+def _cone_bounds(A, c, param, plane_start, plane_vertices):
+    axis = A[:, :, 2]                                  # hull of the two cap discs
+    bottom_c, top_c = c - axis, c + axis
+    disc = _disc_support(A)
+    bottom_h, top_h = param[:, 0:1] * disc, param[:, 1:2] * disc
+    return (np.minimum(bottom_c - bottom_h, top_c - top_h), np.maximum(bottom_c + bottom_h, top_c + top_h))
+
+
+def _torus_bounds(A, c, param, plane_start, plane_vertices):
+    half = _disc_support(A) + param[:, 0:1] * np.linalg.norm(A, axis=2)
+    return c - half, c + half
+
+
+def _convex_bounds(A, c, param, plane_start, plane_vertices):
+    lower, upper = np.empty_like(c), np.empty_like(c)
+    for start, verts in plane_vertices.items():
+        m = plane_start == start
+        world = np.einsum("nij,vj->nvi", A[m], verts) + c[m][:, None, :]
+        lower[m], upper[m] = world.min(axis=1), world.max(axis=1)
+    return lower, upper
+
+
+class Shape:
+    """One canonical shape as the engine sees it.
+
+    A plain class on purpose: Dr.Jit's symbolic `if` treats dataclasses and tuples it reads
+    as loop state (PyTrees), and this table is constant.
+    """
+
+    __slots__ = ("code", "interval", "surface", "bounds")
+
+    def __init__(self, code: int, interval: Callable | None, surface: Callable, bounds: Callable):
+        self.code = code              # engine.layout shape code
+        self.interval = interval      # (b, o, d, param, planes, start, count) -> (near, far, faces); None: own search
+        self.surface = surface        # (m, face, param, plane, x) -> (g, grad g)
+        self.bounds = bounds          # (A, c, param, plane_start, plane_vertices) -> (lower, upper)
+
+
+SHAPES = (
+    Shape(SPHERE, _sphere, _sphere_surface, _sphere_bounds),
+    Shape(BOX, _box, _box_surface, _box_bounds),
+    Shape(CONE, _cone, _cone_surface, _cone_bounds),
+    Shape(TORUS, None, _torus_surface, _torus_bounds),     # four roots: _torus_events
+    Shape(CONVEX, _convex, _convex_surface, _convex_bounds),
+)
+_INTERVAL_SHAPES = tuple(kind for kind in SHAPES if kind.interval is not None)
+
+
+def primitive_bounds(shape, to_world, param, plane_start, plane_vertices):
+    """Exact world boxes (lower, upper) of primitives: support functions under canonical -> world."""
+    A, c = to_world[:, :3, :3], to_world[:, :3, 3]
+    lower, upper = c.copy(), c.copy()
+    for kind in SHAPES:
+        m = shape == kind.code
+        if np.any(m):
+            lower[m], upper[m] = kind.bounds(A[m], c[m], param[m], plane_start[m], plane_vertices)
+    return lower, upper

@@ -26,11 +26,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..model.nodes import Node
+from . import layout as K
 from . import lowering as L
 from . import sah
-from .model import DIFFERENCE, UNION, Node
 
-_U, _I = L.K_UNION, L.K_INTERSECTION
+_U, _I = K.UNION, K.INTERSECTION
 
 
 @dataclass
@@ -60,19 +61,11 @@ def _positive_nary(root_item):
     kind, prim, neg, children = [], [], [], []
 
     def effective(item, negate):
-        """(op, [(operand, negate)]) of an item under an optional complement."""
+        """(op code, [(operand, negate)]) of an item under an optional complement."""
         if item[0] == "leaf":
             return None, None
-        op, kids = item
-        if op == DIFFERENCE:
-            first, rest = kids[0], kids[1:]
-            if negate:        # ~(a - r) = ~a | r
-                return _U, [(first, True)] + [(r, False) for r in rest]
-            return _I, [(first, False)] + [(r, True) for r in rest]
-        code = _U if op == UNION else _I
-        if negate:
-            code = _I if code == _U else _U
-        return code, [(k, negate) for k in kids]
+        op, operands = L.positive_operands(item, negate)
+        return L.KIND_CODE[op], operands
 
     # Tasks: ("node", item, negate, parent); ("operand", item, negate, op, parent)
     tasks = [("node", root_item, False, -1)]
@@ -91,7 +84,7 @@ def _positive_nary(root_item):
             children[parent].append(nid)
         e_op, operands = effective(item, negate)
         if e_op is None:
-            kind.append(L.K_LEAF)
+            kind.append(K.LEAF)
             prim.append(item[1])
             neg.append(negate)
             children.append(None)
@@ -105,28 +98,31 @@ def _positive_nary(root_item):
 
 
 def _nary_bounds(kind, prim, neg, children, prim_lower, prim_upper):
-    """Boxes, co-boundedness and leaf counts of the n-ary nodes (children have larger ids)."""
+    """Boxes, co-boundedness and leaf counts of the n-ary nodes (children have larger ids).
+
+    One vectorized pass per level, deepest first, with the box rules of `lowering.operation_boxes`.
+    """
     n = len(kind)
     lower, upper = np.empty((n, 3)), np.empty((n, 3))
     negative = neg.copy()
     leaves = np.zeros(n, np.int64)
-    is_leaf = kind == L.K_LEAF
+    is_leaf = kind == K.LEAF
     lower[is_leaf], upper[is_leaf] = prim_lower[prim[is_leaf]], prim_upper[prim[is_leaf]]
     leaves[is_leaf] = 1
-    for i in np.flatnonzero(~is_leaf)[::-1]:
-        c = np.asarray(children[i])
-        cl, cu, cn = lower[c], upper[c], negative[c]
-        leaves[i] = leaves[c].sum()
-        if kind[i] == _I:
-            if np.any(~cn):       # bounded by the bounded operands' common box
-                lower[i], upper[i], negative[i] = cl[~cn].max(0), cu[~cn].min(0), False
-            else:                 # ~a & ~b = ~(a | b)
-                lower[i], upper[i], negative[i] = cl.min(0), cu.max(0), True
-        else:
-            if np.any(cn):        # ~a | b = ~(a - b): co-bounded by the co-bounded boxes
-                lower[i], upper[i], negative[i] = cl[cn].max(0), cu[cn].min(0), True
-            else:
-                lower[i], upper[i], negative[i] = cl.min(0), cu.max(0), False
+    depth = np.zeros(n, np.int64)
+    for i in range(n):                       # parents come before their children
+        if children[i] is not None:
+            depth[children[i]] = depth[i] + 1
+    for d in range(depth.max(initial=0), -1, -1):
+        ids = np.flatnonzero((depth == d) & ~is_leaf)
+        if not len(ids):
+            continue
+        kids = [np.asarray(children[i], np.int64) for i in ids]
+        starts = np.concatenate([[0], np.cumsum([len(k) for k in kids])[:-1]]).astype(np.int64)
+        c = np.concatenate(kids)
+        lower[ids], upper[ids], negative[ids] = L.operation_boxes(kind[ids] == _U, lower[c], upper[c],
+                                                                  negative[c], starts)
+        leaves[ids] = np.add.reduceat(leaves[c], starts)
     return lower, upper, negative, leaves
 
 
@@ -137,7 +133,7 @@ def _sah_treelets(kind, children, lower, upper, negative, leaves, spatial: bool 
 
     `spatial=False` keeps operand order (balanced in input order) instead of SAH.
     """
-    ops = np.flatnonzero(kind != L.K_LEAF)
+    ops = np.flatnonzero(kind != K.LEAF)
     counts = np.array([len(children[i]) for i in ops], np.int64)
     items = np.concatenate([np.asarray(children[i], np.int64) for i in ops]) if len(ops) else np.zeros(0, np.int64)
     owner = np.repeat(ops, counts)
@@ -184,7 +180,7 @@ class _Tree:
         self.right.append(right)
         self.prim.append(prim)
         self.neg.append(neg)
-        h = 0 if kind == L.K_LEAF else 1 + max(self.height[left], self.height[right])
+        h = 0 if kind == K.LEAF else 1 + max(self.height[left], self.height[right])
         self.height.append(h)
         return len(self.kind) - 1
 
@@ -202,13 +198,13 @@ class _Tree:
         while stack:
             j = stack.pop()
             order.append(j)
-            if self.kind[j] != L.K_LEAF:
+            if self.kind[j] != K.LEAF:
                 stack.extend((self.left[j], self.right[j]))
         new = {}
         copied = 0
         for j in reversed(order):
-            if self.kind[j] == L.K_LEAF:
-                new[j] = self.add(L.K_LEAF, prim=self.prim[j], neg=self.neg[j])
+            if self.kind[j] == K.LEAF:
+                new[j] = self.add(K.LEAF, prim=self.prim[j], neg=self.neg[j])
                 copied += 1
             else:
                 new[j] = self.add(self.kind[j], new[self.left[j]], new[self.right[j]])
@@ -218,7 +214,7 @@ class _Tree:
         out, stack = [], [(root, False)]
         while stack:
             j, done = stack.pop()
-            if self.kind[j] == L.K_LEAF:
+            if self.kind[j] == K.LEAF:
                 continue
             if done:
                 out.append(j)
@@ -251,7 +247,7 @@ def _distribute_type2(t: _Tree, n1: int, budget: list) -> bool:
     N1 = op'(op(T1, T2), op(op(T1, T3), T4)), duplicating T1. Lowers h(N1) by 1."""
     n2, t1 = t.heavy(n1)
     op = t.kind[n1]
-    if t.kind[n2] == op or t.kind[n2] == L.K_LEAF:
+    if t.kind[n2] == op or t.kind[n2] == K.LEAF:
         return False
     n3, t2 = t.heavy(n2)
     if t.kind[n3] != op:
@@ -289,7 +285,7 @@ def _leaf_count(t: _Tree, i: int) -> int:
     count, stack = 0, [i]
     while stack:
         j = stack.pop()
-        if t.kind[j] == L.K_LEAF:
+        if t.kind[j] == K.LEAF:
             count += 1
         else:
             stack.extend((t.left[j], t.right[j]))
@@ -322,26 +318,26 @@ def _general_form(t: _Tree, root: int):
     g = _Tree()
     value = {}
     for n in _all_postorder(t, root):
-        if t.kind[n] == L.K_LEAF:
-            value[n] = (g.add(L.K_LEAF, prim=t.prim[n]), t.neg[n])
+        if t.kind[n] == K.LEAF:
+            value[n] = (g.add(K.LEAF, prim=t.prim[n]), t.neg[n])
             continue
         (a, na), (b, nb) = value[t.left[n]], value[t.right[n]]
         if t.kind[n] == _I:
             if not na and not nb:
                 value[n] = (g.add(_I, a, b), False)
             elif not na and nb:
-                value[n] = (g.add(L.K_DIFFERENCE, a, b), False)
+                value[n] = (g.add(K.DIFFERENCE, a, b), False)
             elif na and not nb:
-                value[n] = (g.add(L.K_DIFFERENCE, b, a), False)
+                value[n] = (g.add(K.DIFFERENCE, b, a), False)
             else:                       # ~a & ~b = ~(a | b)
                 value[n] = (g.add(_U, a, b), True)
         else:
             if not na and not nb:
                 value[n] = (g.add(_U, a, b), False)
             elif not na and nb:         # a | ~b = ~(b - a)
-                value[n] = (g.add(L.K_DIFFERENCE, b, a), True)
+                value[n] = (g.add(K.DIFFERENCE, b, a), True)
             elif na and not nb:
-                value[n] = (g.add(L.K_DIFFERENCE, a, b), True)
+                value[n] = (g.add(K.DIFFERENCE, a, b), True)
             else:                       # ~a | ~b = ~(a & b)
                 value[n] = (g.add(_I, a, b), True)
     g_root, complemented = value[root]
@@ -354,7 +350,7 @@ def _all_postorder(t: _Tree, root: int):
     out, stack = [], [(root, False)]
     while stack:
         j, done = stack.pop()
-        if done or t.kind[j] == L.K_LEAF:
+        if done or t.kind[j] == K.LEAF:
             out.append(j)
         else:
             stack.extend(((j, True), (t.right[j], False), (t.left[j], False)))
@@ -367,8 +363,8 @@ def _to_flat(t: _Tree, root: int, base: L.FlatTree) -> L.FlatTree:
     stack = [(root, -1, 0)]
     while stack:
         j, par, side = stack.pop()
-        nid = L._new_node(kind, neg, left, right, parent, t.kind[j], t.neg[j], par, side)
-        if t.kind[j] == L.K_LEAF:
+        nid = L.new_node(kind, neg, left, right, parent, t.kind[j], t.neg[j], par, side)
+        if t.kind[j] == K.LEAF:
             left[nid] = t.prim[j]
         else:
             stack.append((t.right[j], nid, 1))
@@ -390,7 +386,7 @@ def optimize(model, *, spatial: bool = True, minimize_height: bool = True, gener
     seconds = {}
     t0 = time.perf_counter()
     prims: list = []
-    root_item = L._items(model, prims)
+    root_item = L.item_tree(model, prims)
     base = L.primitive_tree(prims)     # primitive arrays only; no node arrays yet
     seconds["lower"] = time.perf_counter() - t0
 
@@ -401,8 +397,8 @@ def optimize(model, *, spatial: bool = True, minimize_height: bool = True, gener
     t0 = time.perf_counter()
     lower, upper, negative, leaves = _nary_bounds(kind, prim, neg, children, base.prim_lower, base.prim_upper)
     tree = _Tree()
-    if kind[0] == L.K_LEAF:
-        root = tree.add(L.K_LEAF, prim=int(prim[0]), neg=bool(neg[0]))
+    if kind[0] == K.LEAF:
+        root = tree.add(K.LEAF, prim=int(prim[0]), neg=bool(neg[0]))
     else:
         node_op, b_left, b_right, treelet_root = _sah_treelets(kind, children, lower, upper, negative, leaves,
                                                                spatial)
@@ -437,21 +433,21 @@ def _assemble(tree: _Tree, kind, prim, neg, node_op, b_left, b_right, treelet_ro
     """Copy the SAH binary nodes and n-ary leaves into `tree`; returns the root id."""
     # ids: binary internal node i -> i; n-ary leaf j -> offset + rank
     n_int = len(node_op)
-    leaf_ids = np.flatnonzero(kind == L.K_LEAF)
+    leaf_ids = np.flatnonzero(kind == K.LEAF)
     leaf_new = np.full(len(kind), -1, np.int64)
     leaf_new[leaf_ids] = n_int + np.arange(len(leaf_ids))
 
     def resolve(ref):
         # ref >= 0: internal node; ref < 0: n-ary node ~ref (a leaf, or another treelet's root)
         nary = ~ref
-        target = np.where(kind[np.where(ref < 0, nary, 0)] == L.K_LEAF, leaf_new[np.where(ref < 0, nary, 0)],
+        target = np.where(kind[np.where(ref < 0, nary, 0)] == K.LEAF, leaf_new[np.where(ref < 0, nary, 0)],
                           treelet_root[np.where(ref < 0, nary, 0)])
         return np.where(ref >= 0, ref, target)
 
     lefts, rights = resolve(b_left), resolve(b_right)
     # heights bottom-up need children first: insert leaves, then internal nodes in reverse
     # topological order (children before parents).
-    tree.kind = list(node_op) + [L.K_LEAF] * len(leaf_ids)
+    tree.kind = list(node_op) + [K.LEAF] * len(leaf_ids)
     tree.left = list(lefts) + [-1] * len(leaf_ids)
     tree.right = list(rights) + [-1] * len(leaf_ids)
     tree.prim = [-1] * n_int + list(prim[leaf_ids])
@@ -459,7 +455,7 @@ def _assemble(tree: _Tree, kind, prim, neg, node_op, b_left, b_right, treelet_ro
     tree.height = [0] * (n_int + len(leaf_ids))
     root = int(treelet_root[0])
     for j in _all_postorder(tree, root):
-        if tree.kind[j] != L.K_LEAF:
+        if tree.kind[j] != K.LEAF:
             tree.update(j)
     tree.kind = [int(k) for k in tree.kind]
     tree.left = [int(v) for v in tree.left]

@@ -1,10 +1,13 @@
-"""Seeded generators of the paper's test models (Bogolepov et al. 2013, Table 2)."""
+"""The paper's test scenes (Bogolepov et al. 2013, Table 2): seeded generators, and the one
+registry of named scenes that the command line (`mitsuba-csg render city-3385`) and the
+benchmarks use.
+"""
 from __future__ import annotations
 
 import numpy as np
 
-from .model import Node, difference, union
-from .primitives import Box, Cone, Cylinder, Prism, Sphere, Torus
+from .errors import CSGError
+from .model import Box, Cone, Cylinder, Node, Prism, Sphere, Torus, difference, union
 
 
 def cheese(holes: int = 500, seed: int = 0, size: float = 2.0) -> Node:
@@ -90,3 +93,28 @@ def satellites(count: int = 6250, seed: int = 0, spread: float | None = None) ->
 
 
 __all__ = ["cheese", "city", "satellites", "satellite", "sphere_chain"]
+
+
+# ---- Named scenes: name -> generator call ----
+NAMED = {
+    "cheese-500": lambda: cheese(500),
+    "cheese-1000": lambda: cheese(1000),
+    "cheese-8000": lambda: cheese(8000),
+    "cheese-32000": lambda: cheese(32000),
+    "city-3385": lambda: city(340),
+    "city-34k": lambda: city(3400),
+    "city-343k": lambda: city(34300),
+    "city-987k": lambda: city(98700),
+    "satellites-87.5k": lambda: satellites(6250),
+    "satellites-1.12M": lambda: satellites(80000),
+}
+# Table 2 of the paper, in its order.
+PAPER_TABLE_2 = ("city-3385", "city-343k", "city-987k", "cheese-500", "cheese-1000", "cheese-8000",
+                 "cheese-32000", "satellites-87.5k", "satellites-1.12M")
+
+
+def named(name: str) -> Node:
+    """The built-in scene `name` (see `NAMED`), generated with its fixed seed."""
+    if name not in NAMED:
+        raise CSGError(f"unknown built-in scene {name!r}; known: {', '.join(NAMED)}")
+    return NAMED[name]()

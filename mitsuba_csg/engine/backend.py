@@ -1,0 +1,46 @@
+"""Which Dr.Jit backend a computation runs on, and its array types.
+
+The kernel is written once against a `Backend` (the detached types of `drjit.llvm` or
+`drjit.cuda`); differentiable code asks for the AD module of the same backend.
+"""
+from __future__ import annotations
+
+import sys
+
+import drjit as dr
+
+_MODULES = {dr.JitBackend.LLVM: "drjit.llvm", dr.JitBackend.CUDA: "drjit.cuda"}
+
+
+class Backend:
+    """The detached Dr.Jit types of one backend (drjit.llvm or drjit.cuda)."""
+
+    def __init__(self, module):
+        self.Float, self.UInt32, self.Bool = module.Float, module.UInt32, module.Bool
+        self.Array3f, self.Array4f = module.Array3f, module.Array4f
+        self.module = module
+
+
+def _module_name(tp) -> str:
+    name = _MODULES.get(dr.backend_v(tp))
+    if name is None:
+        raise TypeError(f"mitsuba-csg kernels need a JIT array type (LLVM or CUDA), got {tp.__name__}")
+    return name
+
+
+def backend_of(array) -> Backend:
+    """The detached backend of a Dr.Jit array or array type."""
+    tp = array if isinstance(array, type) else type(array)
+    return Backend(sys.modules[_module_name(tp)])
+
+
+def ad_module(array):
+    """drjit.llvm.ad or drjit.cuda.ad: the AD types of the backend `array` lives on."""
+    tp = array if isinstance(array, type) else type(array)
+    return sys.modules[_module_name(tp) + ".ad"]
+
+
+def default_backend() -> Backend:
+    """The backend of Mitsuba's current variant."""
+    import mitsuba as mi
+    return backend_of(mi.Float)

@@ -1,0 +1,111 @@
+"""The flat tree on the device: structure-of-arrays buffers the kernel gathers from.
+
+`upload` turns a `FlatTree` (numpy, float64) into float32/uint32 Dr.Jit buffers whose
+record sizes are powers of two, so one gather fetches a node or a primitive. Word layouts
+are those of `engine.layout`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import numpy as np
+
+from . import layout as K
+from .backend import Backend
+from .lowering import FlatTree
+from ..errors import TreeTooDeepError
+
+MAX_STACK = 1024        # deepest tree the per-lane stacks are allocated for
+
+
+@dataclass
+class KernelTree:
+    """A FlatTree on the device: structure-of-arrays with explicit strides."""
+    b: Backend
+    node_record: object     # UInt32, 4 per node: flags, left child or primitive index, right child, parent
+    node_box: object        # Float, 8 per node: lower xyz, 0, upper xyz, 0 (padded outwards; NaN if empty)
+    prim_record: object     # Float, 16 per primitive (layout.PRIM_*)
+    planes: object          # Float, 4 per plane
+    table: object           # UInt32 state table, 18 entries (automaton.STATE_TABLE)
+    root: int
+    root_is_leaf: bool
+    stack_size: int
+    num_nodes: int
+    num_prims: int
+    max_iterations: int
+
+
+def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None) -> KernelTree:
+    """Copy a FlatTree to device arrays (float32). A lone leaf gets a virtual union root."""
+    from .automaton import TABLE_ARRAY
+    b = backend
+    kind, neg = flat.node_kind.copy(), flat.node_negative.copy()
+    left, right, parent = flat.node_left.copy(), flat.node_right.copy(), flat.node_parent.copy()
+    lower, upper = flat.node_lower.copy(), flat.node_upper.copy()
+    root_is_leaf = bool(kind[flat.root] == K.LEAF)
+    if root_is_leaf:
+        # The automaton starts at an operation: root' = union(leaf, nothing), where the
+        # dummy leaf has an empty box, which the box test rejects, so it is never intersected.
+        n = len(kind)
+        kind = np.concatenate([kind, [K.UNION, K.LEAF]])
+        neg = np.concatenate([neg, [False, False]])
+        left = np.concatenate([left, [flat.root, 0]])
+        right = np.concatenate([right, [n + 1, -1]])
+        parent = np.concatenate([parent, [-1, n]])
+        parent[flat.root] = n
+        lower = np.vstack([lower, lower[flat.root], [np.inf] * 3])
+        upper = np.vstack([upper, upper[flat.root], [-np.inf] * 3])
+        root = n
+    else:
+        root = flat.root
+    height = int(flat.node_height.max(initial=0)) + (1 if root_is_leaf else 0)
+    if height > MAX_STACK:
+        raise TreeTooDeepError(f"the CSG tree is {height} operations deep; the kernel allows {MAX_STACK}. "
+                               "Optimize it (csg.optimize) or restructure it.")
+    # Pad boxes outwards so float32 rounding never culls a hit on the box boundary.
+    with np.errstate(invalid="ignore", over="ignore"):
+        pad = 1e-5 * (upper - lower) + 1e-6 * np.maximum(np.abs(lower), np.abs(upper)) + 1e-30
+    pad = np.where(np.isfinite(pad) & (upper >= lower), pad, 0.0)
+    # An empty box (lower > upper on some axis: the dummy leaf, an intersection of disjoint
+    # boxes) is stored as NaN: every slab comparison with NaN is false, so the box test
+    # rejects it. The slab test alone accepts many empty boxes.
+    empty = np.any(lower > upper, axis=1)
+    zeros = np.zeros((len(lower), 1))
+    box = np.hstack([lower - pad, zeros, upper + pad, zeros])
+    box[empty] = np.nan
+    flags = K.node_flags(kind.astype(np.uint32), neg.astype(np.uint32))
+    node_record = np.stack([flags, left, np.where(right < 0, 0, right), np.where(parent < 0, 0, parent)], 1)
+    prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
+    prim_record[:, K.PRIM_ROWS:K.PRIM_ROWS + 12] = flat.prim_to_canonical.reshape(-1, 12)
+    prim_record[:, K.PRIM_PARAMS:K.PRIM_PARAMS + 2] = flat.prim_param
+    words = np.stack([flat.prim_plane_start, K.count_shape(flat.prim_plane_count, flat.prim_shape)], 1)
+    prim_record[:, K.PRIM_PLANE_START:K.PRIM_COUNT_SHAPE + 1] = words.astype(np.uint32).view(np.float32)
+    planes = flat.planes if len(flat.planes) else np.zeros((1, 4))
+    n_nodes = len(kind)
+    if max_iterations is None:
+        # Every loop step consumes a distinct primitive event; each event can be re-derived
+        # once per ancestor. This bound is far above any real ray and only stops runaways.
+        max_iterations = int(min(2**31 - 1, 64 + 8 * n_nodes * (height + 2)))
+    return KernelTree(
+        b=b, node_record=b.UInt32(node_record.astype(np.uint32).ravel()),
+        node_box=b.Float(box.astype(np.float32).ravel()), prim_record=b.Float(prim_record.ravel()),
+        planes=b.Float(planes.astype(np.float32).ravel()), table=b.UInt32(TABLE_ARRAY),
+        root=int(root), root_is_leaf=root_is_leaf, stack_size=max(1, height), num_nodes=n_nodes,
+        num_prims=flat.num_prims, max_iterations=max_iterations)
+
+
+def gather_prim(b, tree, prim, active=True):
+    """(rows of world -> canonical, shape, params, plane start, plane count) of primitives."""
+    rec = dr.gather(b.module.ArrayXf, tree.prim_record, prim, active, shape=(K.PRIM_RECORD_FLOATS, dr.width(prim)))
+    rows = [b.Array4f(rec[4 * r], rec[4 * r + 1], rec[4 * r + 2], rec[4 * r + 3]) for r in range(3)]
+    start = dr.reinterpret_array(b.UInt32, rec[K.PRIM_PLANE_START])
+    word = dr.reinterpret_array(b.UInt32, rec[K.PRIM_COUNT_SHAPE])
+    params = (rec[K.PRIM_PARAMS], rec[K.PRIM_PARAMS + 1])
+    return rows, K.record_shape(word), params, start, K.record_plane_count(word)
+
+
+def node_record(b, tree, node, active=True):
+    """(flags, left or primitive, right, parent) of nodes."""
+    rec = dr.gather(b.module.Array4u, tree.node_record, node, active)
+    return rec[0], rec[1], rec[2], rec[3]

@@ -1,0 +1,106 @@
+"""Codes and bit layouts shared by the lowering, the device upload and the kernel.
+
+Everything that two stages must agree on bit for bit lives here, with named accessors, so
+no other module writes a literal mask. The accessors work on numpy arrays and on Dr.Jit
+arrays alike (they only use integer operators).
+
+Node flags word (one per flat-tree node)::
+
+    bits 0-1  node kind: UNION, INTERSECTION, DIFFERENCE or LEAF
+    bit  2    NEGATIVE: a complemented leaf, or a co-bounded operation of the positive form
+
+Hit info word (one per returned hit)::
+
+    bits 0-1  event class relative to the subtree that returned it: ENTER, EXIT or MISS
+    bit  2    FLIP: the primitive's normal is reversed (complemented leaf, or the right side
+              of a difference, an odd number of times)
+    bits 3-31 face index within the primitive (see `engine.shapes`)
+
+Primitive record: 16 floats per primitive (a power of two, so one gather fetches it)::
+
+    0-11   rows of the world -> canonical affine map
+    12-13  two shape parameters (cone radii, torus minor radius)
+    14     first plane of a convex primitive (uint32 bits)
+    15     plane count | shape code << 16 (uint32 bits)
+"""
+from __future__ import annotations
+
+# ---- Node kinds ----
+UNION, INTERSECTION, DIFFERENCE, LEAF = 0, 1, 2, 3
+KIND_NAMES = {UNION: "union", INTERSECTION: "intersection", DIFFERENCE: "difference", LEAF: "leaf"}
+
+# ---- Canonical shapes (model primitives name theirs; the kernel knows these codes) ----
+SPHERE, BOX, CONE, TORUS, CONVEX = 0, 1, 2, 3, 4
+SHAPE_CODES = {"sphere": SPHERE, "box": BOX, "cone": CONE, "torus": TORUS, "convex": CONVEX}
+SHAPE_NAMES = {code: name for name, code in SHAPE_CODES.items()}
+
+# ---- Event classes ----
+ENTER, EXIT, MISS = 0, 1, 2
+
+NO_LEAF = 0xFFFFFFFF        # leaf node / primitive index of a miss
+
+# ---- Node flags ----
+KIND_MASK = 0x3
+NEGATIVE_BIT = 0x4
+
+
+def node_flags(kind, negative):
+    """The flags word of nodes (numpy integer and bool arrays)."""
+    return kind | (negative << 2)
+
+
+def flags_kind(flags):
+    return flags & KIND_MASK
+
+
+def flags_negative(flags):
+    """True where a leaf is complemented or an operation is co-bounded."""
+    return (flags & NEGATIVE_BIT) != 0
+
+
+# ---- Hit info ----
+CLASS_MASK = 0x3
+FLIP_BIT = 0x4
+FACE_SHIFT = 3
+_KEEP_FACE = 0xFFFFFFFF ^ (CLASS_MASK | FLIP_BIT)    # a literal: Dr.Jit's UInt32 takes no negative ~mask
+
+
+def hit_info(cls, flip, face):
+    """The info word of hits: `flip` is 0 or FLIP_BIT."""
+    return cls | flip | (face << FACE_SHIFT)
+
+
+def info_class(info):
+    return info & CLASS_MASK
+
+
+def info_flipped(info):
+    return (info & FLIP_BIT) != 0
+
+
+def info_face(info):
+    return info >> FACE_SHIFT
+
+
+def with_class(info, cls, flip):
+    """`info` with its class replaced by `cls` and its flip bit toggled where `flip` is FLIP_BIT."""
+    return (info & _KEEP_FACE) | cls | ((info & FLIP_BIT) ^ flip)
+
+
+# ---- Primitive record ----
+PRIM_RECORD_FLOATS = 16
+PRIM_ROWS, PRIM_PARAMS, PRIM_PLANE_START, PRIM_COUNT_SHAPE = 0, 12, 14, 15
+SHAPE_SHIFT = 16
+PLANE_COUNT_MASK = 0xFFFF
+
+
+def count_shape(plane_count, shape):
+    return plane_count | (shape << SHAPE_SHIFT)
+
+
+def record_shape(word):
+    return word >> SHAPE_SHIFT
+
+
+def record_plane_count(word):
+    return word & PLANE_COUNT_MASK

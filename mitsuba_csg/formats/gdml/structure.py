@@ -1,0 +1,114 @@
+"""GDML's structure: the world volume, its placed daughters and assemblies, as one union.
+
+Placements follow `G4GDMLReadStructure::PhysvolRead`: G4Transform3D(R.inverse(), t) *
+G4Scale3D(s), so a daughter moves by x' = R^-1 (s x) + t.
+"""
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+
+import numpy as np
+
+from ...model import transform as tf
+from ...model.nodes import Node, Operation
+from ..reading import FormatError
+from .defines import affine, placement, rotation_matrix
+
+MAX_PLACEMENTS = 2_000_000         # placed volumes in the scene
+MAX_VOLUME_DEPTH = 10_000          # placement levels
+
+
+def world_name(doc) -> tuple[str, ET.Element]:
+    setups = [s for s in doc.root if s.tag == "setup"]
+    if not setups:
+        doc.fail(doc.root, "no <setup> with a <world ref=...>: the world volume is unknown")
+    setup = next((s for s in setups if s.get("name") == "Default"), setups[0])
+    world = setup.find("world")
+    if world is None or not world.get("ref"):
+        doc.fail(setup, "needs <world ref=\"...\"/>")
+    return world.get("ref"), world
+
+def _ref(doc, el, tag) -> tuple[ET.Element, str]:
+    child = el.find(tag)
+    if child is None or not child.get("ref"):
+        doc.fail(el, f"needs <{tag} ref=\"...\"/>")
+    return child, child.get("ref")
+
+def scene(doc, solids, depth: int | None, show_world: bool) -> Node:
+    world, world_el = world_name(doc)
+    if world not in doc.volumes:
+        doc.fail(world_el, f"refers to undefined volume {world!r}" +
+                  (" (an assembly cannot be the world)" if world in doc.assemblies else ""))
+    placed: list[Node] = []
+    count = 0
+    # (element, world matrix, depth, ancestors) ; assemblies are expanded at the placing level
+    stack = [(doc.volumes[world], tf.IDENTITY, 0, (world,))]
+    while stack:
+        vol, matrix, level, ancestors = stack.pop()
+        is_assembly = vol.tag == "assembly"
+        if not is_assembly and (level > 0 or show_world):
+            node = _volume_solid(doc, solids, vol)
+            if node is not None:
+                placed.append(node if matrix is tf.IDENTITY else node.transform(matrix))
+        child_level = level if is_assembly else level + 1
+        if depth is not None and child_level > depth:
+            continue
+        children = []
+        for pv in vol:
+            if pv.tag in ("replicavol", "paramvol", "divisionvol"):
+                doc.unsupported(pv, f"<{pv.tag}> is not supported")
+                continue
+            if pv.tag != "physvol":
+                continue
+            if pv.find("file") is not None:
+                doc.unsupported(pv, "<physvol> with <file> (an external GDML file) is not supported")
+                continue
+            ref_el, ref = _ref(doc, pv, "volumeref")
+            target = doc.volumes.get(ref)
+            if target is None:
+                target = doc.assemblies.get(ref)
+            if target is None:
+                doc.fail(ref_el, f"refers to undefined volume {ref!r}")
+            if ref in ancestors:
+                doc.fail(pv, f"volume placement cycle: {' -> '.join(ancestors[ancestors.index(ref):] + (ref,))}")
+            if len(ancestors) > MAX_VOLUME_DEPTH:
+                doc.fail(pv, f"placements nested more than {MAX_VOLUME_DEPTH} deep")
+            count += 1
+            if count > MAX_PLACEMENTS:
+                doc.fail(pv, f"more than {MAX_PLACEMENTS} placed volumes")
+            t, r, s = placement(doc, pv)
+            if np.any(s == 0):
+                doc.fail(pv, f"scale factors must be non-zero, got {s.tolist()}")
+            # G4GDMLReadStructure::PhysvolRead: G4Transform3D(R.inverse(), t) * G4Scale3D(s).
+            local = affine(rotation_matrix(r).T @ np.diag(s), t)
+            children.append((target, tf.compose(matrix, _frozen(local)), child_level, ancestors + (ref,)))
+        stack.extend(reversed(children))   # popped in document order: a depth-first pre-order walk
+    if not placed:
+        raise FormatError(f"{doc.source}: nothing to show: no placed volume "
+                          f"{'at all' if show_world else 'below the world (show_world=True shows the world)'}")
+    return placed[0] if len(placed) == 1 else Operation("union", placed)
+
+def _volume_solid(doc, solids, vol) -> Node | None:
+    solid_el, solid_name = _ref(doc, vol, "solidref")
+    node = solids.solid(solid_name, solid_el)
+    if node is None:
+        return None
+    mat = vol.find("materialref")
+    if mat is not None and mat.get("ref"):
+        name = _strip_pointer(mat.get("ref"))
+        node = node.with_material(name)
+    return node
+
+
+def _frozen(m):
+    m.setflags(write=False)
+    return m
+
+
+def _strip_pointer(name: str) -> str:
+    """Geant4's writer appends '0x<address>' to names; its reader strips it, and so do we."""
+    head = name.split("0x", 1)[0]
+    return head if head else name
+
+
+# ---- Entry points ----
