@@ -1,8 +1,12 @@
 """The kernel against manifold3d meshes of the same model, ray-cast by Mitsuba's Embree.
 
-The mesh (`csg.to_mesh`) is built by manifold3d's exact mesh Booleans and shares no code
-with the kernel or the lowering step; Mitsuba traces it as an ordinary triangle mesh. So
-this is a reference independent of both the kernel and the float64 tracer in reference.py.
+The mesh (`csg.to_mesh`) is built by manifold3d's exact mesh Booleans over the tree as
+written, with each primitive meshed by manifold3d's own constructors from its parameters
+(radius, size, sides, ...), not from the canonical forms the kernel traces; Mitsuba traces
+it as an ordinary triangle mesh. What it shares with the kernel is the model itself: the
+primitives' parameters, their transforms and, for convex polyhedra, the vertices the model
+derives from the planes. So it is independent of the engine and of the float64 tracer in
+reference.py.
 
 What is compared:
 
@@ -54,6 +58,8 @@ import mitsuba_csg as csg
 from mitsuba_csg.scenes import cheese
 from mitsuba_csg.formats.mesh_export import mesh_arrays
 from strategies import models, seeds
+
+pytestmark = pytest.mark.slow     # mesh references / whole benchmark scripts: the full tier only
 
 SEGMENTS = 256
 GRAZING_COS = 0.2         # rays meeting the surface at |cos| below this are not compared

@@ -11,6 +11,8 @@ import pytest
 import mitsuba_csg as csg
 from mitsuba_csg import scenes as generators
 
+pytestmark = pytest.mark.slow     # mesh references / whole benchmark scripts: the full tier only
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

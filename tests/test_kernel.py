@@ -12,6 +12,8 @@ from agreement import compare
 from mitsuba_csg.scenes import cheese
 from strategies import make_points, make_rays, models
 
+pytestmark = pytest.mark.usefixtures("jit_variant")   # every test on every JIT backend here
+
 # Each model is traced as lowered (general form), in positive form, and optimized.
 FORMS = {
     "general": dict(optimize=False),
@@ -98,18 +100,6 @@ def test_random_trees_agree_with_reference(model, seed, form):
     compare(model, hits, o, d)
 
 
-@given(model=models(max_leaves=6), seed=st.integers(0, 2**31))
-def test_width_one_matches_wide(model, seed):
-    """Dr.Jit 1.5's LLVM local-array bug shows as a difference between width 1 and wide."""
-    o, d = make_rays(seed, 64, targets=[leaf.matrix[:3, 3] for leaf in model.leaves()])
-    prepared = csg.prepare(model)
-    wide = csg.trace(prepared, o, d)
-    for i in range(0, 64, 9):
-        single = csg.trace(prepared, o[i:i + 1], d[i:i + 1])
-        assert single.t[0] == wide.t[i] or (np.isnan(single.t[0]) and np.isnan(wide.t[i]))
-        assert single.prim[0] == wide.prim[i]
-
-
 @given(model=models(max_leaves=8), seed=st.integers(0, 2**31))
 def test_normals_point_outward(model, seed):
     """Along the line through the hit point in the normal's direction, the reference sees the
@@ -153,39 +143,41 @@ def test_rays_starting_inside_and_on_surface():
     assert h.t[0] == pytest.approx(0.5)
 
 
-def test_tangent_and_edge_rays_terminate_deterministically():
+def test_tangent_and_edge_rays():
+    """Grazing and edge rays end with the analytic answer; the random ones agree with the reference."""
     m = (csg.Sphere(1.0) | csg.Box(1.0).translate((1.5, 0, 0))) - csg.Cylinder(0.3, 4.0)
+    # Grazes the sphere at (0, 1, 0), t = 5 (the box's y extent is 0.5, the hole's radius 0.3):
+    # a miss, or a touch at the tangent point, are both right.
+    h = csg.trace(m, *axis_rays((-5.0, 1.0, 0.0), (1, 0, 0), 8))
+    assert h.unfinished == 0
+    assert np.all(np.isinf(h.t) | (np.abs(h.t - 5.0) < 1e-3))
+    # Along the box edge y = z = 0.5: enters the sphere first, at x = -sqrt(1 - 0.5).
+    h = csg.trace(m, *axis_rays((-5.0, 0.5, 0.5), (1, 0, 0), 8))
+    np.testing.assert_allclose(h.t, 5.0 - np.sqrt(0.5), rtol=1e-6)
+    assert np.all(h.entering) and np.all(h.prim == 0)
     rng = np.random.default_rng(1)
-    # rays grazing the sphere (distance exactly 1 from its centre) and along box edges
-    o = np.concatenate([np.tile([[-5.0, 1.0, 0.0]], (8, 1)), np.tile([[-5.0, 0.5, 0.5]], (8, 1)),
-                        rng.uniform(-3, 3, (200, 3))])
-    d = np.concatenate([np.tile([[1.0, 0.0, 0.0]], (16, 1)), rng.normal(size=(200, 3))])
-    a = csg.trace(m, o, d)
-    b = csg.trace(m, o, d)
-    assert a.unfinished == 0
-    np.testing.assert_array_equal(a.t, b.t)
-    np.testing.assert_array_equal(a.prim, b.prim)
+    o, d = rng.uniform(-3, 3, (200, 3)), rng.normal(size=(200, 3))
+    stable, total = compare(m, csg.trace(m, o, d), o, d)
+    assert stable > 0.9 * total
 
 
 def test_coincident_faces():
+    """Shared, touching and identical faces: the reference on stable rays, analytic answers on the faces."""
     slab = csg.Box((2, 2, 2))
-    cases = [slab - csg.Box((1, 2, 2)).translate((0.5, 0, 0)),          # shares three faces
-             slab | csg.Box((2, 2, 2)).translate((2, 0, 0)),             # touching faces
-             slab & csg.Box((2, 2, 2)).translate((1, 0, 0)),
-             slab - slab]                                                 # empty
+    half = slab - csg.Box((1, 2, 2)).translate((0.5, 0, 0))          # x in [-1, 0]: shares three faces
+    pair = slab | csg.Box((2, 2, 2)).translate((2, 0, 0))            # touching at x = 1
+    overlap = slab & csg.Box((2, 2, 2)).translate((1, 0, 0))         # x in [0, 1]
     rng = np.random.default_rng(2)
-    o = rng.uniform(-4, 4, (500, 3))
-    d = rng.normal(size=(500, 3))
-    o[:50] = [-5, 0, 0]
-    d[:50] = [1, 0, 0]
-    for m in cases:
-        for form in FORMS:
-            h = trace(m, o, d, form)
-            assert h.unfinished == 0
-            np.testing.assert_array_equal(h.t, trace(m, o, d, form).t)
-    assert np.all(np.isinf(trace(slab - slab, o, d).t))
-    h = trace(cases[1], *axis_rays((-5, 0, 0), (1, 0, 0)))
-    assert h.t[0] == pytest.approx(4.0)
+    o, d = rng.uniform(-4, 4, (500, 3)), rng.normal(size=(500, 3))
+    along_x = axis_rays((-5, 0.25, -0.5), (1, 0, 0))
+    for form in FORMS:
+        for m in (half, pair, overlap):
+            compare(m, trace(m, o, d, form), o, d)
+        assert np.all(np.isinf(trace(slab - slab, o, d, form).t))
+        assert trace(half, *along_x, form).t[0] == pytest.approx(4.0)
+        assert trace(half, *axis_rays((-0.5, 0, 0), (1, 0, 0)), form).t[0] == pytest.approx(0.5)
+        assert trace(pair, *along_x, form).t[0] == pytest.approx(4.0)
+        assert trace(overlap, *along_x, form).t[0] == pytest.approx(5.0)
 
 
 @pytest.mark.parametrize("scale", [1e-4, 1.0, 1e5])
@@ -216,8 +208,10 @@ def test_iteration_bound_is_reported():
     with pytest.warns(csg.IterationLimitWarning):
         h = csg.trace(m, o, d, max_iterations=5)
     assert h.unfinished > 0
-    assert np.all(np.isnan(h.t[np.isnan(h.t)]))
-    assert np.count_nonzero(np.isnan(h.t)) == h.unfinished
+    assert np.count_nonzero(np.isnan(h.t)) == h.unfinished      # exactly the stopped lanes are NaN
+    done = ~np.isnan(h.t)
+    full = csg.trace(m, o[done], d[done])
+    np.testing.assert_array_equal(h.t[done], full.t)              # the others finished as usual
 
 
 def test_torus_has_no_false_roots():
@@ -256,6 +250,7 @@ def _sphere_union_reference(centres, radii, o, d):
     return t.min(1), t.argmin(1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("optimize", [False, True])
 def test_left_deep_union_of_10k_spheres(optimize):
     rng = np.random.default_rng(11)
@@ -276,6 +271,7 @@ def test_left_deep_union_of_10k_spheres(optimize):
     assert np.mean(hits.prim[hit] == prim_ref[hit]) > 0.999   # ties between overlapping entries aside
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("optimize", [False, True])
 def test_cheese_1000(optimize):
     model = cheese(1000, seed=4)

@@ -519,6 +519,7 @@ def _mesh_hits(scene, o, d):
     return t
 
 
+@pytest.mark.slow
 @needs_openscad
 @pytest.mark.parametrize("rel", COMPARED)
 def test_example_agrees_with_openscad_stl(rel, tmp_path):

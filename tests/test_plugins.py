@@ -76,6 +76,7 @@ def test_other_variants_and_variant_switch():
     assert run.stdout.strip().endswith("True True")
 
 
+@pytest.mark.slow
 def test_csg_path_matches_path_on_the_mesh(tmp_path):
     """Metric: relative MSE = mean((a - b)^2) / mean(b^2) at equal spp. Two mesh renders with
     different seeds set the noise floor; the CSG render must be within 1.5x of it (plus the
@@ -94,6 +95,7 @@ def test_csg_path_matches_path_on_the_mesh(tmp_path):
     assert theirs > 2 * threshold, (theirs, noise)
 
 
+@pytest.mark.slow
 def test_all_emitter_kinds_match_path_on_the_mesh(tmp_path):
     """Area light on a mesh, spot light and an environment map, same metric as above."""
     env = np.ascontiguousarray(np.ones((16, 32, 3), np.float32) * np.linspace(0.1, 1.0, 16, dtype=np.float32)[:, None, None])
@@ -130,6 +132,7 @@ def _silhouette_free(depth, tol=0.05):
     return ok
 
 
+@pytest.mark.slow
 def test_aov_depth_matches_mitsuba_depth(tmp_path):
     aov = render(scene_dict(csg_shape(MODEL), {"type": "csg_aov", "aovs": "dd:depth,prim:prim_index"},
                             width=64, height=48, spp=1), seed=5)
@@ -138,10 +141,11 @@ def test_aov_depth_matches_mitsuba_depth(tmp_path):
     ok = _silhouette_free(ours) & _silhouette_free(theirs)
     assert ok.mean() > 0.3
     np.testing.assert_allclose(ours[ok], theirs[ok], rtol=2e-3)
-    # hit / miss agree everywhere except within a pixel of a silhouette
-    near_edge = ~(_silhouette_free(ours, tol=np.inf) | (ours == 0) & _silhouette_free(-np.ones_like(ours) * (theirs == 0)))
-    assert np.mean((ours > 0) != (theirs > 0)) < 0.05
-    del near_edge
+    # hit / miss agree everywhere except within a pixel of a silhouette (of either image)
+    hit_ours, hit_theirs = ours > 0, theirs > 0
+    near_edge = ~(_erode(hit_ours) | _erode(~hit_ours)) | ~(_erode(hit_theirs) | _erode(~hit_theirs))
+    assert np.all((hit_ours == hit_theirs) | near_edge)
+    assert np.mean(hit_ours != hit_theirs) < 0.05
 
 
 def test_scene_file_loads_and_renders(tmp_path):
@@ -265,6 +269,7 @@ def _gradient_check(model, weights, light, eps=0.01, spp=64):
     return g, f
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["position", "radius", "hole_position"])
 def test_prb_interior_derivatives_match_finite_differences(case):
     """Tolerance: the summed interior derivative within 2% and a per-pixel correlation > 0.98."""
@@ -281,6 +286,7 @@ def test_prb_interior_derivatives_match_finite_differences(case):
     assert np.corrcoef(g.ravel(), f.ravel())[0, 1] > 0.98
 
 
+@pytest.mark.slow
 def test_inverse_rendering_recovers_a_radius():
     """Adam on a sphere's radius, from 0.8 to the target 1.0. The sphere fills the view, so
     every pixel is interior (visibility derivatives are not computed, see csg_prb)."""

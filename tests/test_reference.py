@@ -486,6 +486,7 @@ def _volume_of(prim):
     return mf.Manifold.hull_points(v).volume()
 
 
+@pytest.mark.slow
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(models(max_leaves=6))
 def test_volume_matches_manifold3d(model):

@@ -94,7 +94,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     n = dr.width(o.x)
     inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
 
-    # ---- Loop state (all full width: Dr.Jit 1.5 local-index bug, tests/test_drjit_workarounds.py) ----
+    # ---- Loop state (all full width: a width-1 literal stack index misbehaved in Dr.Jit 1.5,
+    #      see tests/test_drjit_workarounds.py) ----
     node = dr.full(b.UInt32, tree.root, n)         # operation node whose children are in play
     t_start = b.Float(tmin)                         # re-intersection starts strictly after this
     t_l, leaf_l, info_l = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
@@ -113,7 +114,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     while dr.hint((state != DONE) & (steps < tree.max_iterations), mode="symbolic", label="csg_traverse"):
         steps += 1
         # Register updates use dr.select rather than nested symbolic ifs: they are cheap, and
-        # Dr.Jit 1.5's LLVM backend mis-places a literal assigned in two sibling branches.
+        # a literal assigned in two sibling branches misbehaved in Dr.Jit 1.5's LLVM backend
+        # (tests/test_drjit_workarounds.py).
 
         # The current node's record serves GoTo (children), Classify (kind), Return (parent).
         flags, node_left, node_right, node_parent = node_record(b, tree, node)
