@@ -8,6 +8,7 @@ from collections import Counter
 from pathlib import Path
 
 from .formats import MODEL_SUFFIXES
+from .images import AOVS, DEFAULT_AOVS
 from .scenes import NAMED as BUILTIN_SCENES
 
 
@@ -92,8 +93,12 @@ def _render(args) -> int:
     mi, csg = _set_variant(args.variant)
     import drjit as dr
     import numpy as np
+    from .images import channel_names, write_exr, write_png
     width, height = args.size
     integrator = args.integrator
+    out = Path(args.output)
+    if out.suffix.lower() != ".exr":
+        raise CLIError(f"{out}: the output is an OpenEXR file (.exr); add --png for a preview")
     if args.input is None:
         scene = mi.load_dict(demo_scene_dict(mi, csg, width, height, args.spp, integrator))
         what = "the built-in Cheese (500 holes)"
@@ -115,39 +120,42 @@ def _render(args) -> int:
     else:
         raise CLIError(f"{args.input}: expected a Mitsuba scene (.xml), a model ({', '.join(MODEL_SUFFIXES)}) "
                        f"or a built-in scene ({', '.join(BUILTIN_SCENES)})")
+    # --aov: the scene's own integrator gives the colour, csg_aov adds the buffers as layers.
+    render_with = scene.integrator()
+    if args.aov is not None:
+        render_with = mi.load_dict({"type": "csg_aov", "inner": render_with,
+                                    "aovs": ",".join(f"{name}:{AOVS[name]}" for name in args.aov)})
     passes = max(1, min(args.passes, args.spp))
     spp_per_pass = [args.spp // passes + (1 if i < args.spp % passes else 0) for i in range(passes)]
     t0 = time.perf_counter()
     total = None
     for i, spp in enumerate(spp_per_pass):
-        image = mi.render(scene, spp=spp, seed=i)
+        image = mi.render(scene, spp=spp, seed=i, integrator=render_with)
         dr.eval(image)
         dr.sync_thread()          # kernels run asynchronously: wait, so progress and time are real
         total = image * spp if total is None else total + image * spp
         _progress(i + 1, passes, time.perf_counter() - t0)
     image = total / float(args.spp)
     elapsed = time.perf_counter() - t0
-    out = Path(args.output)
-    if out.suffix.lower() != ".exr":
-        raise CLIError(f"{out}: the output is an OpenEXR file (.exr); add --png for a preview")
     out.parent.mkdir(parents=True, exist_ok=True)
-    bitmap = mi.Bitmap(image, channel_names=_channels(scene, image))
-    bitmap.write(str(out))
-    written = [out]
+    pixels = np.array(image)
+    names = channel_names(pixels.shape[-1], render_with.aov_names())
+    written = [write_exr(out, pixels, names)]
     if args.png:
-        png = out.with_suffix(".png")
-        rgb = np.array(image)[..., :3] if np.array(image).shape[-1] >= 3 else np.array(image)
-        mi.util.write_bitmap(str(png), rgb)
-        written.append(png)
+        colour = [k for k, name in enumerate(names) if name in ("R", "G", "B", "Y")]
+        written.append(write_png(out.with_suffix(".png"), pixels[..., colour]))
     print(f"rendered {what} at {width}x{height}, {args.spp} spp, in {elapsed:.1f} s -> "
           + ", ".join(str(p) for p in written))
     return 0
 
 
-def _channels(scene, image):
-    names = scene.integrator().aov_names()
-    base = ["R", "G", "B", "A"][: image.shape[-1] - len(names)]
-    return base + list(names) if image.shape[-1] == len(base) + len(names) else None
+def _aov_list(text: str) -> tuple[str, ...]:
+    from .images import AOVS
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    unknown = [n for n in names if n not in AOVS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(AOVS)}, got {text!r}")
+    return names
 
 
 def _progress(done: int, total: int, elapsed: float):
@@ -255,6 +263,9 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--integrator", default="csg_path", choices=["csg_path", "csg_aov", "csg_prb"])
     r.add_argument("--passes", type=_positive_int, default=4, help="render in this many passes (progress)")
     r.add_argument("--png", action="store_true", help="also write a tonemapped sRGB .png preview")
+    r.add_argument("--aov", nargs="?", type=_aov_list, const=DEFAULT_AOVS, default=None, metavar="LIST",
+                   help="add geometric layers to the EXR: comma-separated from depth, normal, position, prim, "
+                        f"shape (no LIST: {','.join(DEFAULT_AOVS)})")
     i = sub.add_parser("info", parents=[common], help="primitives, operations, height and bounds of a model")
     i.add_argument("model")
     c = sub.add_parser("convert", parents=[common], help="convert a model to a mesh (.ply/.obj/.stl) or native .json")

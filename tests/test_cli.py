@@ -103,3 +103,48 @@ def test_bad_size_is_an_argument_error(capsys):
         run("render", "--size", "ten")
     assert e.value.code == 2
     assert "WIDTHxHEIGHT" in capsys.readouterr().err
+
+
+def read_exr(path) -> dict:
+    """Channels of an EXR file, read with OpenEXR (not Mitsuba's reader)."""
+    import OpenEXR
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        return {name: np.array(channel.pixels) for name, channel in f.channels().items()}
+
+
+def test_aov_layers_in_the_exr(tmp_path):
+    """A sphere seen by the framing camera: the depth layer at the image centre is the camera's
+    distance to the centre minus the radius, the normal faces the camera, the prim index is 0,
+    and the colour channels are those Mitsuba's own reader sees."""
+    from mitsuba_csg.camera import framing
+    model = tmp_path / "ball.json"
+    model.write_text('{"format": "mitsuba-csg", "version": 1, "root": {"type": "sphere", "radius": 1.5}}')
+    out = tmp_path / "ball.exr"
+    assert run("render", model, "--size", "33x19", "--spp", "4", "--aov", "-o", out) == 0
+    layers = read_exr(out)
+    assert {"R", "G", "B", "depth", "normal.x", "normal.y", "normal.z", "prim"} <= set(layers)
+    origin, target = framing((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5), 40.0, 33 / 19)
+    centre = (9, 16)
+    assert layers["depth"][centre] == pytest.approx(np.linalg.norm(origin - target) - 1.5, rel=1e-3)
+    normal = np.array([layers[f"normal.{c}"][centre] for c in "xyz"])
+    towards_camera = (origin - target) / np.linalg.norm(origin - target)
+    assert normal @ towards_camera > 0.99          # averaged over the pixel: ~4 degrees of sphere
+    assert layers["prim"][centre] == 0.0 and layers["depth"][0, 0] == 0.0     # a corner sees no sphere
+    mitsuba = np.array(mi.Bitmap(str(out)))
+    np.testing.assert_array_equal(mitsuba[..., 0], layers["R"])
+
+
+def test_aov_names_are_checked(capsys):
+    with pytest.raises(SystemExit):
+        run("render", "--aov", "depth,colour")
+    assert "depth, normal, position, prim, shape" in capsys.readouterr().err
+
+
+def test_global_options_around_an_implied_render(tmp_path, capsys):
+    """`mitsuba-csg --variant V model` and `mitsuba-csg model ... --verbose` render, as `render` would."""
+    out = tmp_path / "m.exr"
+    assert run("--variant", "llvm_ad_rgb", MODEL, "--size", "8x8", "--spp", "1", "-o", out) == 0
+    assert out.exists()
+    assert run(MODEL, "--size", "8x8", "--spp", "1", "-o", out, "--verbose") == 0
+    with pytest.raises(Exception):                  # --verbose after the command still re-raises
+        run("info", tmp_path / "missing.json", "--verbose")

@@ -330,3 +330,29 @@ def test_new_tmin_values_do_not_recompile():
     # One traversal kernel per call; a value baked into the kernel would miss the cache each time.
     assert len(history) == 4 and sum(not h["cache_hit"] for h in history) <= 1, [
         {k: h.get(k) for k in ("cache_hit", "cache_disk", "operation_count", "size")} for h in history]
+
+
+def test_box_test_rejects_empty_boxes():
+    """The lone leaf's dummy sibling and an intersection of disjoint boxes have empty boxes;
+    the slab test alone would accept rays through them (so a lone primitive was intersected
+    twice). Every ray, from every direction, must be rejected."""
+    import drjit as dr
+
+    from mitsuba_csg.engine import automaton
+
+    lone = csg.prepare(csg.Sphere(1.0))
+    disjoint = csg.prepare((csg.Box(1.0) & csg.Box(1.0).translate((3, 0, 0))) | csg.Sphere(0.5).translate((9, 0, 0)),
+                           optimize=False)
+    empty_node = int(np.flatnonzero(np.any(disjoint.flat.node_lower > disjoint.flat.node_upper, axis=1))[0])
+    rng = np.random.default_rng(4)
+    o, d = rng.uniform(-6, 6, (256, 3)), rng.normal(size=(256, 3))
+    d[:6] = np.vstack([np.eye(3), -np.eye(3)])
+    for prepared, node in ((lone, lone.tree.num_nodes - 1), (disjoint, empty_node)):
+        b = prepared.tree.b
+        O, D = csg.rays_to_device(o, b), csg.rays_to_device(d, b)
+        inv_d = b.Array3f([1.0 / D[i] for i in range(3)])
+        hit = automaton._box_hit(b, prepared.tree, dr.full(b.UInt32, node, 256), O, inv_d,
+                                 b.Float(-1e30), b.Float(1e30), True)
+        assert not np.any(hit.numpy())
+    h = csg.trace(lone, o, d)
+    compare(csg.Sphere(1.0), h, o, d)

@@ -575,3 +575,13 @@ def test_fuzz_dicts_from_python_raise_only_model_errors():
             from_dict(data)
         except ModelError as e:
             assert str(e).startswith("<dict>: ")
+
+
+def test_load_refuses_options_the_format_does_not_take(tmp_path):
+    import mitsuba_csg as csg
+    path = tmp_path / "m.json"
+    save(Sphere(1.0), path)
+    with pytest.raises(csg.CSGError, match="on_unsupported.*|takes no options"):
+        csg.load(path, on_unsupported="skip")
+    with pytest.raises(csg.CSGError, match="solid, depth, show_world, on_unsupported"):
+        csg.load(tmp_path / "m.gdml", solids="x")
