@@ -1,8 +1,9 @@
 """The flat tree on the device: structure-of-arrays buffers the kernel gathers from.
 
-`upload` turns a `FlatTree` (numpy, float64) into float32/uint32 Dr.Jit buffers whose
-record sizes are powers of two, so one gather fetches a node or a primitive. Word layouts
-are those of `engine.layout`.
+`upload` turns a `FlatTree` (numpy, float64) into float32/uint32 Dr.Jit buffers with one
+fixed-size record per node (4 words: flags, children, parent; 8 floats: the padded box) and
+per primitive (16 floats), gathered by index times record size. Word layouts are those of
+`engine.layout`.
 """
 from __future__ import annotations
 
