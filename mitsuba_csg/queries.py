@@ -169,4 +169,3 @@ def contains(model, points, *, optimize: bool = True) -> np.ndarray:
     p = _rays(points, "points")
     hits = trace(model, p, np.broadcast_to(_PROBE, p.shape), 0.0, np.inf, optimize=optimize)
     return (hits.prim >= 0) & ~hits.entering
-

@@ -7,6 +7,7 @@ import mitsuba as mi
 from mitsuba_csg.engine.hit_geometry import attached_hit
 from mitsuba_csg.queries import trace_rays
 
+
 class SceneCSG:
     """The CSG shapes of a scene and whether anything else (meshes, spheres, ...) is in it."""
 

@@ -11,8 +11,6 @@ from .primitives import Box, Cone, ConvexPolyhedron, Cylinder
 TWO_PI = 2.0 * math.pi
 
 
-
-
 def inner_cone(r_bottom: float, r_top: float, height: float) -> Node | None:
     """The hole r < r(z) of a frustum section |z| <= height/2, extended past both caps along its slope
     (as far as the radius stays >= 0) so that subtracting it leaves no coincident faces."""

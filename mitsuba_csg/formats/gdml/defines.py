@@ -31,7 +31,6 @@ def affine(linear: np.ndarray, offset) -> np.ndarray:
     return m
 
 
-
 def read_defines(doc, section):
     for el in section:
         tag = el.tag
@@ -64,14 +63,16 @@ def read_defines(doc, section):
         else:
             doc.fail(el, f"unknown define element <{tag}>")
 
+
 def vector(doc, el, kind: str) -> np.ndarray:
     """x, y, z of a <position>/<rotation>/<scale> element, in mm / rad / 1."""
     if kind == "scale":
         return np.array([doc.number(el, a, 1.0) for a in "xyz"])
     default = "mm" if kind == "position" else "rad"
     unit = doc.unit(el, "unit" if el.get("unit") is not None else
-                     ("lunit" if kind == "position" else "aunit"), default)
+                    ("lunit" if kind == "position" else "aunit"), default)
     return np.array([doc.number(el, a, 0.0, unit) for a in "xyz"])
+
 
 def vector_ref(doc, el, kind: str) -> np.ndarray:
     name = el.get("ref")
@@ -81,6 +82,7 @@ def vector_ref(doc, el, kind: str) -> np.ndarray:
     if target is None:
         doc.fail(el, f"refers to undefined {kind} {name!r}")
     return vector(doc, target, kind)
+
 
 def placement(doc, el, prefix: str = ""):
     """(translation, rotation angles, scale) from inline or referenced children of `el`."""

@@ -7,7 +7,6 @@ import math
 import warnings
 import xml.etree.ElementTree as ET
 
-from ...model.nodes import Node
 from ..reading import FormatError
 from .defines import read_defines
 from .expressions import Expressions, short
@@ -22,7 +21,6 @@ class Document:
         self.expressions = Expressions()
         self.vectors: dict[str, dict[str, ET.Element]] = {"position": {}, "rotation": {}, "scale": {}}
         self.solid_elements: dict[str, ET.Element] = {}
-        self.solids: dict[str, Node | None] = {}  # built; None = unsupported and skipped
         self.volumes: dict[str, ET.Element] = {}
         self.assemblies: dict[str, ET.Element] = {}
         self.warned: set[str] = set()

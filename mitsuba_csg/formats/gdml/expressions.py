@@ -45,7 +45,6 @@ _FUNCTIONS = {
     "fabs": (abs, 1), "min": (min, 2), "max": (max, 2),
 }
 
-# Solids we know Geant4 has but cannot represent exactly with our primitives.
 
 def short(text: str, limit: int = 60) -> str:
     """`text` on one line, cut to `limit` characters, for messages."""

@@ -21,6 +21,7 @@ from ..reading import FormatError
 from .defines import affine, placement, rotation_matrix
 from .expressions import TWO_PI
 
+# Solids we know Geant4 has but cannot represent exactly with our primitives.
 UNSUPPORTED_SOLIDS = (
     "tessellated", "xtru", "tet", "arb8", "twistedbox", "twistedtrd", "twistedtrap", "twistedtubs",
     "hype", "paraboloid", "genericPolycone", "genericPolyhedra", "reflectedSolid", "loop",
@@ -93,7 +94,7 @@ class Solids:
         if builder is None:
             if tag in UNSUPPORTED_SOLIDS or tag.startswith("twisted"):
                 self.doc.unsupported(el, f"the GDML solid <{tag}> cannot be represented exactly with analytic "
-                                      f"primitives")
+                                     f"primitives")
                 return None
             if tag in ("opticalsurface",):
                 return None
@@ -274,7 +275,7 @@ class Solids:
                     eb = 0.5 * h if s <= 0 else min(0.5 * h, rmin0 / s)
                     et = 0.5 * h if s >= 0 else min(0.5 * h, rmin1 / -s)
                     inner = frustum_chunk(phi0, step, chunk, full, z0, z1, rmin0, rmin1, eb, et,
-                                           1e-3 * scale)
+                                          1e-3 * scale)
                     piece = outer - inner
                 pieces.append(piece)
         return pieces[0] if len(pieces) == 1 else Operation("union", pieces)

@@ -28,17 +28,19 @@ def world_name(doc) -> tuple[str, ET.Element]:
         doc.fail(setup, "needs <world ref=\"...\"/>")
     return world.get("ref"), world
 
+
 def _ref(doc, el, tag) -> tuple[ET.Element, str]:
     child = el.find(tag)
     if child is None or not child.get("ref"):
         doc.fail(el, f"needs <{tag} ref=\"...\"/>")
     return child, child.get("ref")
 
+
 def scene(doc, solids, depth: int | None, show_world: bool) -> Node:
     world, world_el = world_name(doc)
     if world not in doc.volumes:
         doc.fail(world_el, f"refers to undefined volume {world!r}" +
-                  (" (an assembly cannot be the world)" if world in doc.assemblies else ""))
+                 (" (an assembly cannot be the world)" if world in doc.assemblies else ""))
     placed: list[Node] = []
     count = 0
     # (element, world matrix, depth, ancestors) ; assemblies are expanded at the placing level
@@ -88,6 +90,7 @@ def scene(doc, solids, depth: int | None, show_world: bool) -> Node:
                           f"{'at all' if show_world else 'below the world (show_world=True shows the world)'}")
     return placed[0] if len(placed) == 1 else Operation("union", placed)
 
+
 def _volume_solid(doc, solids, vol) -> Node | None:
     solid_el, solid_name = _ref(doc, vol, "solidref")
     node = solids.solid(solid_name, solid_el)
@@ -109,6 +112,3 @@ def _strip_pointer(name: str) -> str:
     """Geant4's writer appends '0x<address>' to names; its reader strips it, and so do we."""
     head = name.split("0x", 1)[0]
     return head if head else name
-
-
-# ---- Entry points ----
