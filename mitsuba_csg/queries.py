@@ -15,7 +15,7 @@ import numpy as np
 from .engine import layout as K
 from .engine.automaton import traverse
 from .engine.backend import Backend, default_backend
-from .engine.device import KernelTree, node_record, upload
+from .engine.device import KernelTree, TraversalOptions, node_record, upload
 from .engine.hit_geometry import hit_normal
 from .engine.lowering import FlatTree, lower
 from .engine.optimize import OptimizedModel
@@ -36,11 +36,12 @@ class Prepared:
 
 
 def prepare(model, backend=None, *, optimize: bool = True, positive: bool = False,
-            max_iterations: int | None = None) -> Prepared:
+            max_iterations: int | None = None, traversal: TraversalOptions | None = None) -> Prepared:
     """Optimize (or just lower) `model` and upload it for `backend` (default: Mitsuba's variant).
 
     `optimize=False` traces the input tree as written, chains of one operation balanced in
-    input order; `positive=True` (with optimize=False) traces its positive form.
+    input order; `positive=True` (with optimize=False) traces its positive form. `traversal`
+    switches the automaton's mechanisms (`engine.device.TraversalOptions`; all on by default).
     """
     if isinstance(model, Prepared):
         return model
@@ -56,7 +57,7 @@ def prepare(model, backend=None, *, optimize: bool = True, positive: bool = Fals
         flat = optimize_tree(model)[0].flat
     else:
         flat = lower(model, positive=positive)
-    return Prepared(flat, upload(flat, backend, max_iterations))
+    return Prepared(flat, upload(flat, backend, max_iterations, traversal))
 
 
 @dataclass

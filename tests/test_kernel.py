@@ -1,6 +1,8 @@
 """The automaton against analytic answers and the independent float64 reference."""
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from hypothesis import given
@@ -9,6 +11,7 @@ from hypothesis import strategies as st
 import mitsuba_csg as csg
 import reference as ref
 from agreement import compare
+from mitsuba_csg.engine.device import TraversalOptions
 from mitsuba_csg.scenes import cheese
 from strategies import make_points, make_rays, models
 
@@ -22,8 +25,15 @@ FORMS = {
 }
 
 
-def trace(model, o, d, form="general", **kw):
-    prepared = csg.prepare(model, **FORMS[form])
+# Each traversal mechanism on (the default) and off, so that each is checked on its own.
+TRAVERSALS = {
+    "default": TraversalOptions(),
+    "no_restart": TraversalOptions(restart_at_sibling=False),
+}
+
+
+def trace(model, o, d, form="general", traversal="default", **kw):
+    prepared = csg.prepare(model, **FORMS[form], traversal=TRAVERSALS[traversal])
     return csg.trace(prepared, o, d, **kw)
 
 
@@ -91,12 +101,13 @@ def test_tmin_tmax(form):
 
 # ---- Random trees against the reference ----
 
+@pytest.mark.parametrize("traversal", TRAVERSALS)
 @pytest.mark.parametrize("form", FORMS)
 @given(model=models(max_leaves=8), seed=st.integers(0, 2**31))
-def test_random_trees_agree_with_reference(model, seed, form):
+def test_random_trees_agree_with_reference(model, seed, form, traversal):
     targets = [leaf.matrix[:3, 3] for leaf in model.leaves()]
     o, d = make_rays(seed, 96, targets=targets)
-    hits = trace(model, o, d, form)
+    hits = trace(model, o, d, form, traversal)
     compare(model, hits, o, d)
 
 
@@ -170,9 +181,9 @@ def test_coincident_faces():
     rng = np.random.default_rng(2)
     o, d = rng.uniform(-4, 4, (500, 3)), rng.normal(size=(500, 3))
     along_x = axis_rays((-5, 0.25, -0.5), (1, 0, 0))
-    for form in FORMS:
+    for form, traversal in itertools.product(FORMS, TRAVERSALS):
         for m in (half, pair, overlap):
-            compare(m, trace(m, o, d, form), o, d)
+            compare(m, trace(m, o, d, form, traversal), o, d)
         assert np.all(np.isinf(trace(slab - slab, o, d, form).t))
         assert trace(half, *along_x, form).t[0] == pytest.approx(4.0)
         assert trace(half, *axis_rays((-0.5, 0, 0), (1, 0, 0)), form).t[0] == pytest.approx(0.5)

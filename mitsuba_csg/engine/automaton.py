@@ -181,7 +181,15 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         res_leaf = dr.select(ret_r, leaf_r, dr.select(ret_l, leaf_l, NO_LEAF))
         res_info = dr.select(ret_r, info_r_out, dr.select(ret_l, info_l, MISS))
         returning = ret_l | ret_r | ret_miss
-        t_start = dr.select(loop_l, t_l, dr.select(loop_r, t_r, t_start))
+        # A loop advances the child X whose event comes first; until the sibling Y's event the
+        # parent's state is fixed by Y (union: Y inside; intersection: Y outside), so X's events
+        # before t_Y cannot matter. Restarting X at t_Y skips them; the class of X's next event
+        # after t_Y still says X's state from t_Y on. Without the option X restarts at t_X.
+        if tree.options.restart_at_sibling:
+            t_loop = dr.maximum(t_l, t_r)
+            t_start = dr.select(loop_l | loop_r, t_loop, t_start)
+        else:
+            t_start = dr.select(loop_l, t_l, dr.select(loop_r, t_r, t_start))
         t_l, leaf_l, info_l = (dr.select(returning, res_t, t_l), dr.select(returning, res_leaf, leaf_l),
                                dr.select(returning, res_info, info_l))
         t_r, leaf_r, info_r = (dr.select(returning, res_t, t_r), dr.select(returning, res_leaf, leaf_r),

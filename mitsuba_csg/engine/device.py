@@ -7,7 +7,7 @@ per primitive (16 floats), gathered by index times record size. Word layouts are
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import drjit as dr
 import numpy as np
@@ -18,6 +18,23 @@ from .lowering import FlatTree
 from ..errors import TreeTooDeepError
 
 MAX_STACK = 1024        # deepest tree the per-lane stacks are allocated for
+
+
+class TraversalOptions:
+    """Switches of the automaton's traversal mechanisms (all on by default; tests and
+    benchmarks turn them off one at a time).
+
+    A plain class: Dr.Jit's symbolic control flow walks dataclasses it finds in loop state
+    (the KernelTree) and would try to assign to a frozen one.
+    """
+
+    __slots__ = ("restart_at_sibling",)
+
+    def __init__(self, restart_at_sibling: bool = True):
+        self.restart_at_sibling = restart_at_sibling   # a loop restarts the looping child at its sibling's event
+
+    def __repr__(self) -> str:
+        return f"TraversalOptions(restart_at_sibling={self.restart_at_sibling})"
 
 
 @dataclass
@@ -35,9 +52,11 @@ class KernelTree:
     num_nodes: int
     num_prims: int
     max_iterations: int
+    options: TraversalOptions = field(default_factory=TraversalOptions)
 
 
-def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None) -> KernelTree:
+def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
+           options: TraversalOptions | None = None) -> KernelTree:
     """Copy a FlatTree to device arrays (float32). A lone leaf gets a virtual union root."""
     from .automaton import TABLE_ARRAY
     b = backend
@@ -93,7 +112,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None) 
         node_box=b.Float(box.astype(np.float32).ravel()), prim_record=b.Float(prim_record.ravel()),
         planes=b.Float(planes.astype(np.float32).ravel()), table=b.UInt32(TABLE_ARRAY),
         root=int(root), root_is_leaf=root_is_leaf, stack_size=max(1, height), num_nodes=n_nodes,
-        num_prims=flat.num_prims, max_iterations=max_iterations)
+        num_prims=flat.num_prims, max_iterations=max_iterations, options=options or TraversalOptions())
 
 
 def gather_prim(b, tree, prim, active=True):
