@@ -67,13 +67,17 @@ def _complement_class(cls):
     return dr.select(cls == MISS, EXIT, cls ^ 1)
 
 
-def _box_hit(b, tree, node, o, inv_d, t_start, tmax, active):
+def _box_span(b, tree, node, o, inv_d, active):
+    """(near, far) of the ray's parameter inside the node's box (NaN for an empty box)."""
     lo4 = dr.gather(b.Array4f, tree.node_box, node * 2, active)
     hi4 = dr.gather(b.Array4f, tree.node_box, node * 2 + 1, active)
     lo, hi = b.Array3f(lo4.x, lo4.y, lo4.z), b.Array3f(hi4.x, hi4.y, hi4.z)
     t1, t2 = (lo - o) * inv_d, (hi - o) * inv_d
-    near = dr.max(dr.minimum(t1, t2))
-    far = dr.min(dr.maximum(t1, t2))
+    return dr.max(dr.minimum(t1, t2)), dr.min(dr.maximum(t1, t2))
+
+
+def _box_hit(b, tree, node, o, inv_d, t_start, tmax, active):
+    near, far = _box_span(b, tree, node, o, inv_d, active)
     return (near <= far) & (far >= t_start) & (near <= tmax)
 
 
@@ -101,12 +105,14 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     t_l, leaf_l, info_l = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
     t_r, leaf_r, info_r = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
     state = dr.full(b.UInt32, GOTO_L_FRESH, n)
+    t_bound = b.Float(tmax)                         # events of `node` past this do not matter
     sp = dr.zeros(b.UInt32, n)                      # shared depth of both stacks
     steps = dr.zeros(b.UInt32, n)
     hit_t = dr.alloc_local(b.Float, tree.stack_size)       # hit stack: t (or a saved t_start)
     hit_leaf = dr.alloc_local(b.UInt32, tree.stack_size)   #            leaf node
     hit_info = dr.alloc_local(b.UInt32, tree.stack_size)   #            info word
     frame = dr.alloc_local(b.UInt32, tree.stack_size)      # state stack: SAVE_L / LOAD_L / LOAD_R
+    bound = dr.alloc_local(b.Float, tree.stack_size)       #              the parent's t_bound
 
     # Rays that miss the root box are done before the loop starts.
     state = dr.select(_box_hit(b, tree, node, o, inv_d, t_start, tmax, True), state, DONE)
@@ -123,10 +129,28 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         # ---- GoTo: one child of `node`, from t_start ----
         going = state < CLASSIFY
         go_right = (state & 1) == 1
+        # The second child of a fresh search: while the first child's state fixes the node's
+        # (union: inside; intersection, difference: outside), the second child's events before
+        # the first child's event cannot matter (skip_to_sibling: search it from there);
+        # otherwise its events after the first child's event cannot change what the node
+        # returns next (bounded_search: search it only up to there).
+        second = state == GOTO_R_FRESH
+        cls_first = K.info_class(info_l)
+        fixes = dr.select(K.flags_kind(flags) == UNION, cls_first == EXIT, cls_first != EXIT)
+        if tree.options.skip_to_sibling:
+            t_start = dr.select(second & fixes, dr.maximum(t_start, t_l), t_start)
+        child_bound = t_bound
+        if tree.options.bounded_search:
+            child_bound = dr.select(second & ~fixes, dr.minimum(t_bound, t_l), t_bound)
         child = dr.select(go_right, node_right, node_left)
         child_flags, child_prim, _, _ = node_record(b, tree, child, going)
         child_is_leaf = K.flags_kind(child_flags) == LEAF
-        in_box = going & _box_hit(b, tree, child, o, inv_d, t_start, tmax, going)
+        near, far = _box_span(b, tree, child, o, inv_d, going)
+        reaches = going & (near <= far) & (far >= t_start)      # the box lies (partly) after t_start
+        in_box = reaches & (near <= child_bound)
+        # Past a bound short of tmax, the subtree's state is known (outside if bounded, inside
+        # if co-bounded) but not its next event: a provisional hit at the bound.
+        provisional = reaches & ~in_box & (child_bound < tmax)
         # Descend into an operation child: push what to do with its hit when it comes back.
         descend = in_box & ~child_is_leaf
         fresh_left = state == GOTO_L_FRESH
@@ -134,11 +158,16 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, descend)
         hit_info.write(dr.select(go_right, info_l, info_r), sp, descend)
         frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R)), sp, descend)
+        bound.write(t_bound, sp, descend)
         sp = dr.select(descend, sp + 1, sp)
         node = dr.select(descend, child, node)
+        t_bound = dr.select(descend, child_bound, t_bound)
         # A leaf, or a subtree whose box the ray misses from here on: its hit is known now.
-        t_c = dr.full(b.Float, dr.inf, n)
-        info_c = dr.select(K.flags_negative(child_flags), b.UInt32(EXIT), b.UInt32(MISS))   # co-bounded: inside forever
+        co_bounded = K.flags_negative(child_flags)
+        t_c = dr.select(provisional, child_bound, dr.inf)
+        info_c = dr.select(co_bounded, b.UInt32(EXIT), b.UInt32(MISS))   # co-bounded: inside forever
+        info_c = dr.select(provisional, dr.select(co_bounded, b.UInt32(EXIT), b.UInt32(ENTER)) | K.PROVISIONAL_BIT,
+                           info_c)
         if in_box & child_is_leaf:
             t_c, info_c = _leaf_hit(b, tree, child_flags, child_prim, o, d, t_start)
         known = going & ~descend
@@ -172,24 +201,36 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         ret_r = classify & ~ret_l & (ret_r | (loop_r & (t_r == dr.inf)))
         loop_l = classify & loop_l & (t_l != dr.inf)
         loop_r = classify & ~loop_l & loop_r & (t_r != dr.inf)
-        ret_miss = classify & ~(ret_l | ret_r | loop_l | loop_r)
+        # A provisional hit before the node's own bound is not the node's answer: search that
+        # child again from its bound (redo), which finds its real next event.
+        redo_l = ret_l & K.info_provisional(info_l) & (t_l < t_bound)
+        redo_r = ret_r & K.info_provisional(info_r) & (t_r < t_bound)
+        ret_l, ret_r = ret_l & ~redo_l, ret_r & ~redo_r
+        # A loop whose restart lies at or past the node's bound: the node keeps its state up
+        # to the bound (union: inside, the sibling is; otherwise outside), a provisional hit.
+        t_loop = dr.maximum(t_l, t_r)
+        past = (loop_l | loop_r) & (t_loop >= t_bound) & (t_bound < tmax)
+        loop_l, loop_r = (loop_l & ~past) | redo_l, (loop_r & ~past) | redo_r
+        ret_miss = classify & ~(ret_l | ret_r | loop_l | loop_r | past)
         # A returned right hit of a difference changes class and flips its normal.
         flip = dr.select(is_diff, FLIP_BIT, 0)
         info_r_out = K.with_class(info_r, cls_r, flip)
         # The returned hit goes into both registers (the parent's frame picks the slot).
-        res_t = dr.select(ret_r, t_r, dr.select(ret_l, t_l, dr.inf))
+        res_t = dr.select(ret_r, t_r, dr.select(ret_l, t_l, dr.select(past, t_bound, dr.inf)))
         res_leaf = dr.select(ret_r, leaf_r, dr.select(ret_l, leaf_l, NO_LEAF))
-        res_info = dr.select(ret_r, info_r_out, dr.select(ret_l, info_l, MISS))
-        returning = ret_l | ret_r | ret_miss
+        past_info = dr.select(kind == UNION, b.UInt32(EXIT), b.UInt32(ENTER)) | K.PROVISIONAL_BIT
+        res_info = dr.select(ret_r, info_r_out, dr.select(ret_l, info_l, dr.select(past, past_info, MISS)))
+        returning = ret_l | ret_r | ret_miss | past
         # A loop advances the child X whose event comes first; until the sibling Y's event the
         # parent's state is fixed by Y (union: Y inside; intersection: Y outside), so X's events
         # before t_Y cannot matter. Restarting X at t_Y skips them; the class of X's next event
         # after t_Y still says X's state from t_Y on. Without the option X restarts at t_X.
+        # A redo restarts at the provisional hit's own bound.
         if tree.options.restart_at_sibling:
-            t_loop = dr.maximum(t_l, t_r)
             t_start = dr.select(loop_l | loop_r, t_loop, t_start)
         else:
             t_start = dr.select(loop_l, t_l, dr.select(loop_r, t_r, t_start))
+        t_start = dr.select(redo_l, t_l, dr.select(redo_r, t_r, t_start))
         t_l, leaf_l, info_l = (dr.select(returning, res_t, t_l), dr.select(returning, res_leaf, leaf_l),
                                dr.select(returning, res_info, info_l))
         t_r, leaf_r, info_r = (dr.select(returning, res_t, t_r), dr.select(returning, res_leaf, leaf_r),
@@ -202,6 +243,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         sp = dr.select(popping, sp - 1, sp)
         node = dr.select(popping, node_parent, node)
         what = frame.read(sp, popping)
+        t_bound = dr.select(popping, bound.read(sp, popping), t_bound)
         saved_t, saved_leaf, saved_info = hit_t.read(sp, popping), hit_leaf.read(sp, popping), hit_info.read(sp, popping)
         load_l = popping & (what == LOAD_L)      # the hit is the right child's; reload the left
         load_r = popping & (what == LOAD_R)      # the hit is the left child's; reload the right
@@ -214,6 +256,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         state = dr.select(at_root, DONE, dr.select(save_l, GOTO_R_FRESH, dr.select(popping, CLASSIFY, state)))
 
     finished = state == DONE
-    hit = finished & (K.info_class(info_l) != MISS) & (t_l <= tmax)
+    # A provisional hit at the root can only sit at tmax: nothing before it.
+    hit = finished & (K.info_class(info_l) != MISS) & (t_l <= tmax) & ~K.info_provisional(info_l)
     t = dr.select(hit, t_l, dr.inf)
     return t, dr.select(hit, leaf_l, NO_LEAF), info_l, finished, steps

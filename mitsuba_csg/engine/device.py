@@ -28,13 +28,18 @@ class TraversalOptions:
     (the KernelTree) and would try to assign to a frozen one.
     """
 
-    __slots__ = ("restart_at_sibling",)
+    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search")
 
-    def __init__(self, restart_at_sibling: bool = True):
+    def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True):
         self.restart_at_sibling = restart_at_sibling   # a loop restarts the looping child at its sibling's event
+        self.skip_to_sibling = skip_to_sibling         # a fresh second child starts at the first child's event
+                                                       # when that child fixes the node's state
+        self.bounded_search = bounded_search           # otherwise the second child is searched only up to the
+                                                       # first child's event (provisional results beyond)
 
     def __repr__(self) -> str:
-        return f"TraversalOptions(restart_at_sibling={self.restart_at_sibling})"
+        return (f"TraversalOptions(restart_at_sibling={self.restart_at_sibling}, "
+                f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search})")
 
 
 @dataclass

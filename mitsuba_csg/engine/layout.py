@@ -14,7 +14,9 @@ Hit info word (one per returned hit)::
     bits 0-1  event class relative to the subtree that returned it: ENTER, EXIT or MISS
     bit  2    FLIP: the primitive's normal is reversed (complemented leaf, or the right side
               of a difference, an odd number of times)
-    bits 3-31 face index within the primitive (see `engine.shapes`)
+    bit  3    PROVISIONAL: not an event but a bound: the subtree was not searched past t, and
+              the class says its state before t (ENTER: outside, EXIT: inside)
+    bits 4-31 face index within the primitive (see `engine.shapes`)
 
 Primitive record: 16 floats per primitive (a power of two, so one gather fetches it)::
 
@@ -61,7 +63,8 @@ def flags_negative(flags):
 # ---- Hit info ----
 CLASS_MASK = 0x3
 FLIP_BIT = 0x4
-FACE_SHIFT = 3
+PROVISIONAL_BIT = 0x8
+FACE_SHIFT = 4
 _KEEP_FACE = 0xFFFFFFFF ^ (CLASS_MASK | FLIP_BIT)    # a literal: Dr.Jit's UInt32 takes no negative ~mask
 
 
@@ -80,6 +83,10 @@ def info_flipped(info):
 
 def info_face(info):
     return info >> FACE_SHIFT
+
+
+def info_provisional(info):
+    return (info & PROVISIONAL_BIT) != 0
 
 
 def with_class(info, cls, flip):

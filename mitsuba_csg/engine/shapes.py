@@ -79,17 +79,22 @@ def _cone(b, o, d, param, plane_buf, start, count):
     # Side: x^2 + y^2 = r(z)^2 with r(z) = a + c z, |z| <= 1; caps at z = -1 (radius p0), +1 (p1).
     p0, p1 = param[0], param[1]
     a, c = 0.5 * (p0 + p1), 0.5 * (p1 - p0)
-    r_o = a + c * o.z
+    # Solve the side's quadratic from the ray's closest approach to the origin: from a far
+    # origin, o.x^2 + o.y^2 - r^2 cancels catastrophically in float32 (a ray 700 radii away
+    # was off by a third of the radius).
+    t_near = -dr.dot(o, d) / dr.squared_norm(d)
+    oc = o + t_near * d
+    r_o = a + c * oc.z
     qa = d.x * d.x + d.y * d.y - c * c * d.z * d.z
-    qb = 2.0 * (o.x * d.x + o.y * d.y - c * d.z * r_o)
-    qc = o.x * o.x + o.y * o.y - r_o * r_o
+    qb = 2.0 * (oc.x * d.x + oc.y * d.y - c * d.z * r_o)
+    qc = oc.x * oc.x + oc.y * oc.y - r_o * r_o
     disc = qb * qb - 4.0 * qa * qc
     # A ray through the apex has disc = 0 exactly; rounding must not turn it into a miss.
     real = disc >= -1e-5 * (qb * qb + dr.abs(4.0 * qa * qc))
     sq = dr.sqrt(dr.maximum(disc, 0.0))
     q = -0.5 * (qb + dr.copysign(sq, qb))          # stable roots; qa == 0 gives the linear root
     # disc <= 0 within rounding: one double root (its two formulas would disagree).
-    roots = (q / qa, dr.select(disc > 0, qc / q, q / qa))
+    roots = (t_near + q / qa, t_near + dr.select(disc > 0, qc / q, q / qa))
     near, far = dr.full(b.Float, dr.inf, dr.width(qa)), dr.full(b.Float, -dr.inf, dr.width(qa))
     near_face = dr.zeros(b.UInt32, dr.width(qa))
     far_face = dr.zeros(b.UInt32, dr.width(qa))
