@@ -15,6 +15,13 @@ RESULTS = Path(os.environ.get("MITSUBA_CSG_BENCH_RESULTS", ROOT / "benchmarks" /
 sys.path.insert(0, str(ROOT))
 
 
+def select_variant(name: str | None) -> None:
+    """Select a Mitsuba variant (e.g. cuda_ad_rgb) before mitsuba_csg is imported."""
+    if name:
+        import mitsuba as mi
+        mi.set_variant(name)
+
+
 def machine() -> dict:
     import drjit as dr
     import mitsuba as mi

@@ -31,8 +31,7 @@ TRAVERSALS = {
     "no_restart": TraversalOptions(restart_at_sibling=False),
     "no_skip": TraversalOptions(skip_to_sibling=False),
     "no_bound": TraversalOptions(bounded_search=False),
-    "no_near_first": TraversalOptions(near_first=False),
-    "none": TraversalOptions(False, False, False, False),
+    "none": TraversalOptions(False, False, False),
 }
 
 
@@ -390,21 +389,3 @@ def test_rays_from_far_away(shape):
     hits = csg.trace(model, o, d)
     stable, total = compare(model, hits, o, d)
     assert stable > 0.8 * total and np.isfinite(hits.t).sum() > 20
-
-
-def test_a_second_model_of_the_same_size_class_compiles_no_kernel():
-    """Model-dependent numbers are opaque and buffers are Dr.Jit's own (aligned), so the
-    traversal kernel of a second cheese is the first one's (Dr.Jit's kernel history)."""
-    import drjit as dr
-    rng = np.random.default_rng(0)
-    o = np.column_stack([rng.uniform(-1, 1, (500, 2)), np.full(500, -5.0)])
-    d = np.tile([0.0, 0.0, 1.0], (500, 1))
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        csg.trace(cheese(200, seed=1), o, d)
-        dr.kernel_history()                                   # clears it
-        csg.trace(cheese(220, seed=2), o, d)
-        compiled = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT and not k["cache_hit"]]
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert compiled == []

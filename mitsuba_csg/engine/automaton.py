@@ -11,9 +11,12 @@ most one primitive intersection, or a descent), one Classify step (a state-table
 and one Return step (pop and hand the hit to the parent), so lanes stay in step.
 
 Registers: `node` (the operation whose children are in play), `t_start` (events must lie
-strictly after it), the left and right hits (t, leaf, info) and the GoTo/Classify/Return
-state. A frame is pushed when GoTo descends into an operation child, and popped when that
-child's subtree returns its hit (which then sits in both hit registers):
+strictly after it), `t_bound` (events of `node` past it do not matter), the left and right
+hits (t, leaf, info) and the GoTo/Classify/Return state. The traversal mechanisms (restart
+and skip to the sibling's event, bounded search with provisional hits) are described in
+`docs/algorithm.md` and switched by `engine.device.TraversalOptions`. A frame is pushed,
+with the node's `t_bound` on a third stack, when GoTo descends into an operation child, and
+popped when that child's subtree returns its hit (which then sits in both hit registers):
 
 =========  ===========================  ===================================  ==============================
 frame      pushed by                    hit stack entry holds                when popped
@@ -41,10 +44,8 @@ from .layout import DIFFERENCE, ENTER, EXIT, FLIP_BIT, INTERSECTION, LEAF, MISS,
 
 # Automaton states (GoTo states: bit 0 = right child, bit 1 = re-intersection after a loop).
 GOTO_L_FRESH, GOTO_R_FRESH, GOTO_L_LOOP, GOTO_R_LOOP, CLASSIFY, RETURN, DONE = range(7)
-# What a pushed frame does when the subtree's hit comes back (see the table above); the
-# frame also keeps whether the parent's registers hold its children swapped (near_first).
+# What a pushed frame does when the subtree's hit comes back (see the table above).
 SAVE_L, LOAD_L, LOAD_R = range(3)
-SWAPPED_FRAME = 4
 
 # Actions of the state tables.
 RET_L, RET_R, RET_CLOSER, RET_L_ELSE_LOOP_R, RET_R_ELSE_LOOP_L, LOOP_CLOSER, RET_MISS = range(7)
@@ -102,16 +103,12 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
 
     # ---- Loop state (all full width: a width-1 literal stack index misbehaved in Dr.Jit 1.5,
     #      see tests/test_drjit_workarounds.py) ----
-    # Model-dependent numbers enter as opaque values, not literals: a literal is compiled into
-    # the kernel, so every new model would compile a new one.
-    node = dr.opaque(b.UInt32, tree.root, n)       # operation node whose children are in play
-    max_iterations = dr.opaque(b.UInt32, tree.max_iterations)
+    node = dr.full(b.UInt32, tree.root, n)         # operation node whose children are in play
     t_start = b.Float(tmin)                         # re-intersection starts strictly after this
     t_l, leaf_l, info_l = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
     t_r, leaf_r, info_r = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
     state = dr.full(b.UInt32, GOTO_L_FRESH, n)
     t_bound = b.Float(tmax)                         # events of `node` past this do not matter
-    swapped = dr.zeros(b.Bool, n)                   # registers L / R hold `node`'s right / left child
     sp = dr.zeros(b.UInt32, n)                      # shared depth of both stacks
     steps = dr.zeros(b.UInt32, n)
     hit_t = dr.alloc_local(b.Float, tree.stack_size)       # hit stack: t (or a saved t_start)
@@ -123,7 +120,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     # Rays that miss the root box are done before the loop starts.
     state = dr.select(_box_hit(b, tree, node, o, inv_d, t_start, tmax, True), state, DONE)
 
-    while dr.hint((state != DONE) & (steps < max_iterations), mode="symbolic", label="csg_traverse"):
+    while dr.hint((state != DONE) & (steps < tree.max_iterations), mode="symbolic", label="csg_traverse"):
         steps += 1
         # Register updates use dr.select rather than nested symbolic ifs: they are cheap, and
         # a literal assigned in two sibling branches misbehaved in Dr.Jit 1.5's LLVM backend
@@ -143,27 +140,15 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         second = state == GOTO_R_FRESH
         cls_first = K.info_class(info_l)
         fixes = dr.select(K.flags_kind(flags) == UNION, cls_first == EXIT, cls_first != EXIT)
-        if dr.hint(tree.options.skip_to_sibling, mode="scalar"):
+        if tree.options.skip_to_sibling:
             t_start = dr.select(second & fixes, dr.maximum(t_start, t_l), t_start)
         child_bound = t_bound
-        if dr.hint(tree.options.bounded_search, mode="scalar"):
+        if tree.options.bounded_search:
             child_bound = dr.select(second & ~fixes, dr.minimum(t_bound, t_l), t_bound)
-        if dr.hint(tree.options.near_first, mode="scalar"):
-            # A fresh search of a union or intersection takes the child whose box the ray
-            # enters first, so that its event bounds the other (registers L and R then hold
-            # the right and the left child: `swapped`; a difference keeps its order).
-            near_l, far_l = _box_span(b, tree, node_left, o, inv_d, going)
-            near_r, far_r = _box_span(b, tree, node_right, o, inv_d, going)
-            swapped = dr.select(state == GOTO_L_FRESH, (K.flags_kind(flags) != DIFFERENCE) & (near_r < near_l),
-                                swapped)
-            take_right = go_right ^ swapped
-            near, far = dr.select(take_right, near_r, near_l), dr.select(take_right, far_r, far_l)
-            child = dr.select(take_right, node_right, node_left)
-        else:
-            child = dr.select(go_right, node_right, node_left)
-            near, far = _box_span(b, tree, child, o, inv_d, going)
+        child = dr.select(go_right, node_right, node_left)
         child_flags, child_prim, _, _ = node_record(b, tree, child, going)
         child_is_leaf = K.flags_kind(child_flags) == LEAF
+        near, far = _box_span(b, tree, child, o, inv_d, going)
         reaches = going & (near <= far) & (far >= t_start)      # the box lies (partly) after t_start
         in_box = reaches & (near <= child_bound)
         # Past a bound short of tmax, the subtree's state is known (outside if bounded, inside
@@ -175,8 +160,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         hit_t.write(dr.select(fresh_left, t_start, dr.select(go_right, t_l, t_r)), sp, descend)
         hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, descend)
         hit_info.write(dr.select(go_right, info_l, info_r), sp, descend)
-        frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R))
-                    | dr.select(swapped, SWAPPED_FRAME, 0), sp, descend)
+        frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R)), sp, descend)
         bound.write(t_bound, sp, descend)
         sp = dr.select(descend, sp + 1, sp)
         node = dr.select(descend, child, node)
@@ -245,7 +229,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         # before t_Y cannot matter. Restarting X at t_Y skips them; the class of X's next event
         # after t_Y still says X's state from t_Y on. Without the option X restarts at t_X.
         # A redo restarts at the provisional hit's own bound.
-        if dr.hint(tree.options.restart_at_sibling, mode="scalar"):
+        if tree.options.restart_at_sibling:
             t_start = dr.select(loop_l | loop_r, t_loop, t_start)
         else:
             t_start = dr.select(loop_l, t_l, dr.select(loop_r, t_r, t_start))
@@ -262,8 +246,6 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         sp = dr.select(popping, sp - 1, sp)
         node = dr.select(popping, node_parent, node)
         what = frame.read(sp, popping)
-        swapped = dr.select(popping, (what & SWAPPED_FRAME) != 0, swapped)
-        what = what & (SWAPPED_FRAME - 1)
         t_bound = dr.select(popping, bound.read(sp, popping), t_bound)
         saved_t, saved_leaf, saved_info = hit_t.read(sp, popping), hit_leaf.read(sp, popping), hit_info.read(sp, popping)
         load_l = popping & (what == LOAD_L)      # the hit is the right child's; reload the left

@@ -13,7 +13,7 @@ import drjit as dr
 import numpy as np
 
 from . import layout as K
-from .backend import Backend, owned
+from .backend import Backend
 from .lowering import FlatTree
 from ..errors import TreeTooDeepError
 
@@ -28,22 +28,18 @@ class TraversalOptions:
     (the KernelTree) and would try to assign to a frozen one.
     """
 
-    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first")
+    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search")
 
-    def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True,
-                 near_first: bool = True):
+    def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True):
         self.restart_at_sibling = restart_at_sibling   # a loop restarts the looping child at its sibling's event
         self.skip_to_sibling = skip_to_sibling         # a fresh second child starts at the first child's event
                                                        # when that child fixes the node's state
         self.bounded_search = bounded_search           # otherwise the second child is searched only up to the
                                                        # first child's event (provisional results beyond)
-        self.near_first = near_first                   # a fresh union / intersection search starts with the
-                                                       # child whose box the ray enters first
 
     def __repr__(self) -> str:
         return (f"TraversalOptions(restart_at_sibling={self.restart_at_sibling}, "
-                f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search}, "
-                f"near_first={self.near_first})")
+                f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search})")
 
 
 @dataclass
@@ -117,17 +113,11 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         # once per ancestor. This bound is far above any real ray and only stops runaways.
         max_iterations = int(min(2**31 - 1, 64 + 8 * n_nodes * (height + 2)))
     return KernelTree(
-        b=b, node_record=owned(b.UInt32, node_record.astype(np.uint32).ravel()),
-        node_box=owned(b.Float, box.astype(np.float32).ravel()), prim_record=owned(b.Float, prim_record.ravel()),
-        planes=owned(b.Float, planes.astype(np.float32).ravel()), table=owned(b.UInt32, TABLE_ARRAY),
-        root=int(root), root_is_leaf=root_is_leaf, stack_size=stack_size_class(height), num_nodes=n_nodes,
+        b=b, node_record=b.UInt32(node_record.astype(np.uint32).ravel()),
+        node_box=b.Float(box.astype(np.float32).ravel()), prim_record=b.Float(prim_record.ravel()),
+        planes=b.Float(planes.astype(np.float32).ravel()), table=b.UInt32(TABLE_ARRAY),
+        root=int(root), root_is_leaf=root_is_leaf, stack_size=max(1, height), num_nodes=n_nodes,
         num_prims=flat.num_prims, max_iterations=max_iterations, options=options or TraversalOptions())
-
-
-def stack_size_class(height: int) -> int:
-    """Per-lane stack entries for a tree of `height`: rounded up to a power of two (at least 8),
-    so that models of similar height share one compiled kernel (the size is compiled in)."""
-    return max(8, 1 << max(0, int(height) - 1).bit_length())
 
 
 def gather_prim(b, tree, prim, active=True):
