@@ -82,6 +82,22 @@ def main():
                        f"{r['nodes_before']} / {r['nodes_after']} | {fmt(r.get('mrays_s'), '.2f')} | "
                        f"{r['peak_rss_gb']:.1f} |")
         out.append("")
+    mech = load("traversal_mechanisms")
+    if mech:
+        m = mech["machine"]
+        w, h = mech["size"]
+        out += ["## Traversal mechanisms", "",
+                f"`./run.sh bench traversal_mechanisms.py` ({m['date']}, `{m['variant']}`): the optimized tree of "
+                f"each scene traced at {w}x{h} with no mechanism (Kensler's automaton as in the paper), each "
+                "mechanism alone, all but one, and all (the default); `docs/algorithm.md` describes them. "
+                "Steps are automaton iterations per primary ray; ratios are against the first row of the scene, "
+                "measured in the same run. Table 2 above predates the mechanisms where its date is earlier.", "",
+                "| scene | mechanisms | steps/ray | max steps | steps ratio | Mrays/s | speed-up |",
+                "|---|---|---|---|---|---|---|"]
+        for r in mech["rows"]:
+            out.append(f"| {r['scene']} | {r['mechanisms']} | {r['mean_steps']:.1f} | {r['max_steps']} | "
+                       f"{r['steps_ratio']:.2f} | {r['mrays_s']:.2f} | {r['speedup']:.2f} |")
+        out.append("")
     mesh = load("mesh_route")
     if mesh:
         out += ["## Versus the mesh route", "",
@@ -97,8 +113,10 @@ def main():
         out.append("")
     if mesh:
         worst = max(mesh["rows"], key=lambda r: r["trace_ratio"])
-        steps = next((r["mean_steps"] for r in (t2 or {}).get("rows", [])
-                      if r["scene"] == worst["scene"] and r["tree"] == "+" and "mean_steps" in r), None)
+        steps = next((r["mean_steps"] for r in (mech or {}).get("rows", [])
+                      if r["scene"] == worst["scene"] and r["mechanisms"].startswith("all (")), None)
+        steps = steps or next((r["mean_steps"] for r in (t2 or {}).get("rows", [])
+                               if r["scene"] == worst["scene"] and r["tree"] == "+" and "mean_steps" in r), None)
         steps_text = f"{steps:.0f} automaton steps per ray in {worst['scene']}" if steps else "many automaton steps"
         best = min(mesh["rows"], key=lambda r: r["trace_ratio"])
         out += ["### Where the mesh route is faster, and why", "",
