@@ -68,15 +68,17 @@ def path_frame(model, width, height, repeats) -> float:
     return common.best_of(run, repeats)["min_s"]
 
 
-def cold_compile(scene: str, size: str) -> dict:
+def cold_compile(scene: str, size: str, variant: str | None = None) -> dict:
     """First trace in a fresh process with an empty Dr.Jit kernel cache, then with a warm one.
 
     Reports the LLVM compile time of the traversal kernel from Dr.Jit's kernel history,
     and the wall time of the first trace (Python tracing of the kernel included).
     """
     code = ("import sys; sys.path.insert(0, {root!r}); sys.path.insert(0, {bench!r});"
+            "import common; common.select_variant({variant!r});"
             "import trace_throughput as tt; tt._first_trace({scene!r}, {size!r})")
-    code = code.format(root=str(common.ROOT), bench=str(common.ROOT / "benchmarks"), scene=scene, size=size)
+    code = code.format(root=str(common.ROOT), bench=str(common.ROOT / "benchmarks"), scene=scene, size=size,
+                       variant=variant)
     out = {}
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, DRJIT_CACHE_DIR=cache)
@@ -122,7 +124,9 @@ def main(argv=None):
     parser.add_argument("--no-compile", action="store_true", help="skip the cold-compile measurement")
     parser.add_argument("--no-path", action="store_true", help="skip the csg_path frame")
     parser.add_argument("--name", default="trace_throughput")
+    parser.add_argument("--variant", default=None, help="Mitsuba variant, e.g. cuda_ad_rgb (default: llvm_ad_rgb)")
     args = parser.parse_args(argv)
+    common.select_variant(args.variant)
     import mitsuba_csg as csg
     from mitsuba_csg import scenes
     width, height = (int(v) for v in args.size.split("x"))
@@ -158,7 +162,7 @@ def main(argv=None):
         print(f"  {scene}: - {results['-'].get('mrays_s', 0):.2f}  + {results['+'].get('mrays_s', 0):.2f} Mrays/s",
               flush=True)
         if not args.no_compile:
-            results["+"].update(cold_compile(scene, args.size))
+            results["+"].update(cold_compile(scene, args.size, args.variant))
     columns = [("scene", "scene", "s"), ("tree", "tree", "s"), ("primitives", "prims", "d"), ("depth", "depth", "d"),
                ("fps", "fps", ".2f"), ("mrays_s", "Mrays/s", ".2f"), ("median_mrays_s", "median", ".2f"),
                ("mean_steps", "steps/ray", ".1f"), ("max_steps", "max steps", "d"), ("speedup", "+/-", ".1f"),
