@@ -22,6 +22,14 @@ def select_variant(name: str | None) -> None:
         mi.set_variant(name)
 
 
+def parse_args(parser, argv=None):
+    """`parser.parse_args(argv)` with the `--variant` every benchmark takes, selected at once."""
+    parser.add_argument("--variant", default=None, help="Mitsuba variant, e.g. cuda_ad_rgb (default: llvm_ad_rgb)")
+    args = parser.parse_args(argv)
+    select_variant(args.variant)
+    return args
+
+
 def machine() -> dict:
     import drjit as dr
     import mitsuba as mi

@@ -54,9 +54,7 @@ def main(argv=None):
     parser.add_argument("--segments", type=int, default=48)
     parser.add_argument("--size", default="1280x720")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--variant", default=None, help="Mitsuba variant, e.g. cuda_ad_rgb (default: llvm_ad_rgb)")
-    args = parser.parse_args(argv)
-    common.select_variant(args.variant)
+    args = common.parse_args(parser, argv)
     import mitsuba_csg as csg
     from mitsuba_csg import scenes
     width, height = (int(v) for v in args.size.split("x"))

@@ -124,9 +124,7 @@ def main(argv=None):
     parser.add_argument("--no-compile", action="store_true", help="skip the cold-compile measurement")
     parser.add_argument("--no-path", action="store_true", help="skip the csg_path frame")
     parser.add_argument("--name", default="trace_throughput")
-    parser.add_argument("--variant", default=None, help="Mitsuba variant, e.g. cuda_ad_rgb (default: llvm_ad_rgb)")
-    args = parser.parse_args(argv)
-    common.select_variant(args.variant)
+    args = common.parse_args(parser, argv)
     import mitsuba_csg as csg
     from mitsuba_csg import scenes
     width, height = (int(v) for v in args.size.split("x"))

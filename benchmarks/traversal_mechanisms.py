@@ -31,10 +31,8 @@ def main(argv=None):
     parser.add_argument("--scenes", default="cheese-1000,cheese-8000,city-3385,satellites-87.5k")
     parser.add_argument("--size", default="1280x720")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--variant", default=None, help="Mitsuba variant, e.g. cuda_ad_rgb (default: llvm_ad_rgb)")
     parser.add_argument("--name", default="traversal_mechanisms")
-    args = parser.parse_args(argv)
-    common.select_variant(args.variant)
+    args = common.parse_args(parser, argv)
     import mitsuba_csg as csg
     from mitsuba_csg import scenes
     from mitsuba_csg.engine.device import TraversalOptions

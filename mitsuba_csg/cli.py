@@ -8,7 +8,7 @@ from collections import Counter
 from pathlib import Path
 
 from .formats import MODEL_SUFFIXES
-from .images import AOVS, DEFAULT_AOVS
+from .images import AOVS, DEFAULT_AOVS, channel_names, write_exr, write_png
 from .scenes import NAMED as BUILTIN_SCENES
 
 
@@ -93,7 +93,6 @@ def _render(args) -> int:
     mi, csg = _set_variant(args.variant)
     import drjit as dr
     import numpy as np
-    from .images import channel_names, write_exr, write_png
     width, height = args.size
     integrator = args.integrator
     out = Path(args.output)
@@ -150,7 +149,6 @@ def _render(args) -> int:
 
 
 def _aov_list(text: str) -> tuple[str, ...]:
-    from .images import AOVS
     names = tuple(n.strip() for n in text.split(",") if n.strip())
     unknown = [n for n in names if n not in AOVS]
     if unknown or not names:

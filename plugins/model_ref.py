@@ -9,6 +9,7 @@ import itertools
 
 from mitsuba_csg.engine.optimize import OptimizedModel
 from mitsuba_csg.errors import CSGError
+from mitsuba_csg.formats import native_json
 from mitsuba_csg.model.nodes import Node
 
 _PREFIX = "mitsuba-csg:model:"
@@ -31,6 +32,5 @@ def resolve(text: str):
             raise CSGError(f"csg shape: {text!r} names no model registered in this process (use csg.model_ref)")
         return _registry[text]
     if text.lstrip().startswith("{"):
-        from mitsuba_csg.formats import native_json
         return native_json.loads(text, source="<model property>")
     raise CSGError("csg shape: 'model' must come from csg.model_ref(model) or be native JSON text")

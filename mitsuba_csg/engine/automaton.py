@@ -2,7 +2,7 @@
 
 `docs/algorithm.md` explains the algorithm; this module is its kernel and nothing else (the
 buffers it reads are built by `engine.device`, the primitives are intersected by
-`engine.shapes`, word layouts are in `engine.layout`).
+`engine.shapes`, word layouts and the state tables are in `engine.layout`).
 
 One symbolic Dr.Jit loop per ray batch walks the binary tree with two per-lane stacks of
 the tree's height: a hit stack (t, leaf node, hit info) and a state stack (what to do when
@@ -35,35 +35,17 @@ A pop at stack depth 0 ends the lane (DONE) with the root's hit in the left regi
 from __future__ import annotations
 
 import drjit as dr
-import numpy as np
 
 from . import layout as K
 from . import shapes
 from .device import KernelTree, gather_prim, node_record
-from .layout import DIFFERENCE, ENTER, EXIT, FLIP_BIT, INTERSECTION, LEAF, MISS, NO_LEAF, UNION
+from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, LEAF, LOOP_CLOSER, MISS, NO_LEAF, RET_CLOSER, RET_L,
+                     RET_L_ELSE_LOOP_R, RET_R, RET_R_ELSE_LOOP_L, UNION)
 
 # Automaton states (GoTo states: bit 0 = right child, bit 1 = re-intersection after a loop).
 GOTO_L_FRESH, GOTO_R_FRESH, GOTO_L_LOOP, GOTO_R_LOOP, CLASSIFY, RETURN, DONE = range(7)
 # What a pushed frame does when the subtree's hit comes back (see the table above).
 SAVE_L, LOAD_L, LOAD_R = range(3)
-
-# Actions of the state tables.
-RET_L, RET_R, RET_CLOSER, RET_L_ELSE_LOOP_R, RET_R_ELSE_LOOP_L, LOOP_CLOSER, RET_MISS = range(7)
-_E, _X, _M = ENTER, EXIT, MISS
-# Kensler's tables as refined by Bogolepov et al.; union Exit/Exit loops the closer child
-# (returning the farther exit is wrong once a child is non-convex or disjoint). A difference
-# uses the intersection table with the right child's class complemented.
-STATE_TABLE = {
-    UNION: {(_E, _E): RET_CLOSER, (_E, _X): RET_R_ELSE_LOOP_L, (_E, _M): RET_L,
-            (_X, _E): RET_L_ELSE_LOOP_R, (_X, _X): LOOP_CLOSER, (_X, _M): RET_L,
-            (_M, _E): RET_R, (_M, _X): RET_R, (_M, _M): RET_MISS},
-    INTERSECTION: {(_E, _E): LOOP_CLOSER, (_E, _X): RET_L_ELSE_LOOP_R, (_E, _M): RET_MISS,
-                   (_X, _E): RET_R_ELSE_LOOP_L, (_X, _X): RET_CLOSER, (_X, _M): RET_MISS,
-                   (_M, _E): RET_MISS, (_M, _X): RET_MISS, (_M, _M): RET_MISS},
-}
-TABLE_ARRAY = np.array([[STATE_TABLE[op][(cl, cr)] for cl in range(3) for cr in range(3)]
-                        for op in (UNION, INTERSECTION)], dtype=np.uint32).ravel()
-
 
 def _complement_class(cls):
     """The class of the same event for the complement: enter <-> exit, a miss is an exit at infinity."""
@@ -128,6 +110,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
 
         # The current node's record serves GoTo (children), Classify (kind), Return (parent).
         flags, node_left, node_right, node_parent = node_record(b, tree, node)
+        kind = K.flags_kind(flags)
 
         # ---- GoTo: one child of `node`, from t_start ----
         going = state < CLASSIFY
@@ -139,7 +122,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         # returns next (bounded_search: search it only up to there).
         second = state == GOTO_R_FRESH
         cls_first = K.info_class(info_l)
-        fixes = dr.select(K.flags_kind(flags) == UNION, cls_first == EXIT, cls_first != EXIT)
+        fixes = dr.select(kind == UNION, cls_first == EXIT, cls_first != EXIT)
         if tree.options.skip_to_sibling:
             t_start = dr.select(second & fixes, dr.maximum(t_start, t_l), t_start)
         child_bound = t_bound
@@ -182,7 +165,6 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
 
         # ---- Classify: apply the state table of `node` ----
         classify = state == CLASSIFY
-        kind = K.flags_kind(flags)
         is_diff = kind == DIFFERENCE
         cls_l = K.info_class(info_l)
         cls_r = K.info_class(info_r)

@@ -21,7 +21,8 @@ class Backend:
         self.module = module
 
 
-def _module_name(tp) -> str:
+def _module_name(array) -> str:
+    tp = array if isinstance(array, type) else type(array)
     name = _MODULES.get(dr.backend_v(tp))
     if name is None:
         raise TypeError(f"mitsuba-csg kernels need a JIT array type (LLVM or CUDA), got {tp.__name__}")
@@ -30,14 +31,12 @@ def _module_name(tp) -> str:
 
 def backend_of(array) -> Backend:
     """The detached backend of a Dr.Jit array or array type."""
-    tp = array if isinstance(array, type) else type(array)
-    return Backend(sys.modules[_module_name(tp)])
+    return Backend(sys.modules[_module_name(array)])
 
 
 def ad_module(array):
     """drjit.llvm.ad or drjit.cuda.ad: the AD types of the backend `array` lives on."""
-    tp = array if isinstance(array, type) else type(array)
-    return sys.modules[_module_name(tp) + ".ad"]
+    return sys.modules[_module_name(array) + ".ad"]
 
 
 def default_backend() -> Backend:

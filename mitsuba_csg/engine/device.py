@@ -50,7 +50,7 @@ class KernelTree:
     node_box: object        # Float, 8 per node: lower xyz, 0, upper xyz, 0 (padded outwards; NaN if empty)
     prim_record: object     # Float, 16 per primitive (layout.PRIM_*)
     planes: object          # Float, 4 per plane
-    table: object           # UInt32 state table, 18 entries (automaton.STATE_TABLE)
+    table: object           # UInt32 state table, 18 entries (layout.STATE_TABLE)
     root: int
     root_is_leaf: bool
     stack_size: int
@@ -63,7 +63,6 @@ class KernelTree:
 def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
            options: TraversalOptions | None = None) -> KernelTree:
     """Copy a FlatTree to device arrays (float32). A lone leaf gets a virtual union root."""
-    from .automaton import TABLE_ARRAY
     b = backend
     kind, neg = flat.node_kind.copy(), flat.node_negative.copy()
     left, right, parent = flat.node_left.copy(), flat.node_right.copy(), flat.node_parent.copy()
@@ -115,7 +114,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     return KernelTree(
         b=b, node_record=b.UInt32(node_record.astype(np.uint32).ravel()),
         node_box=b.Float(box.astype(np.float32).ravel()), prim_record=b.Float(prim_record.ravel()),
-        planes=b.Float(planes.astype(np.float32).ravel()), table=b.UInt32(TABLE_ARRAY),
+        planes=b.Float(planes.astype(np.float32).ravel()), table=b.UInt32(K.TABLE_ARRAY),
         root=int(root), root_is_leaf=root_is_leaf, stack_size=max(1, height), num_nodes=n_nodes,
         num_prims=flat.num_prims, max_iterations=max_iterations, options=options or TraversalOptions())
 

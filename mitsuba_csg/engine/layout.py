@@ -1,7 +1,8 @@
 """Codes and bit layouts shared by the lowering, the device upload and the kernel.
 
 Everything that two stages must agree on bit for bit lives here, with named accessors, so
-no other module writes a literal mask. The accessors work on numpy arrays and on Dr.Jit
+no other module writes a literal mask; so do the state tables, which the upload puts on the
+device and the automaton reads. The accessors work on numpy arrays and on Dr.Jit
 arrays alike (they only use integer operators).
 
 Node flags word (one per flat-tree node)::
@@ -26,6 +27,8 @@ Primitive record: 16 floats per primitive (a power of two, so one gather fetches
     15     plane count | shape code << 16 (uint32 bits)
 """
 from __future__ import annotations
+
+import numpy as np
 
 # ---- Node kinds ----
 UNION, INTERSECTION, DIFFERENCE, LEAF = 0, 1, 2, 3
@@ -111,3 +114,22 @@ def record_shape(word):
 
 def record_plane_count(word):
     return word & PLANE_COUNT_MASK
+
+
+# ---- State tables (the automaton reads them; the upload puts them on the device) ----
+# Actions of the state tables.
+RET_L, RET_R, RET_CLOSER, RET_L_ELSE_LOOP_R, RET_R_ELSE_LOOP_L, LOOP_CLOSER, RET_MISS = range(7)
+_E, _X, _M = ENTER, EXIT, MISS
+# Kensler's tables as refined by Bogolepov et al.; union Exit/Exit loops the closer child
+# (returning the farther exit is wrong once a child is non-convex or disjoint). A difference
+# uses the intersection table with the right child's class complemented.
+STATE_TABLE = {
+    UNION: {(_E, _E): RET_CLOSER, (_E, _X): RET_R_ELSE_LOOP_L, (_E, _M): RET_L,
+            (_X, _E): RET_L_ELSE_LOOP_R, (_X, _X): LOOP_CLOSER, (_X, _M): RET_L,
+            (_M, _E): RET_R, (_M, _X): RET_R, (_M, _M): RET_MISS},
+    INTERSECTION: {(_E, _E): LOOP_CLOSER, (_E, _X): RET_L_ELSE_LOOP_R, (_E, _M): RET_MISS,
+                   (_X, _E): RET_R_ELSE_LOOP_L, (_X, _X): RET_CLOSER, (_X, _M): RET_MISS,
+                   (_M, _E): RET_MISS, (_M, _X): RET_MISS, (_M, _M): RET_MISS},
+}
+TABLE_ARRAY = np.array([[STATE_TABLE[op][(cl, cr)] for cl in range(3) for cr in range(3)]
+                        for op in (UNION, INTERSECTION)], dtype=np.uint32).ravel()
