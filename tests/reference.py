@@ -593,7 +593,7 @@ def contains(model, points):
 
 
 def stable_mask(model, origins, directions, tmin=0.0, tmax=INF, *, sep=1e-5, cos_min=1e-2,
-                jitter=1e-6, trials=2, seed=0, return_reasons=False):
+                jitter=1e-6, trials=2, seed=0, return_reasons=False, same=0.0):
     """(N,) bool: rays whose first hit (or miss) is well-conditioned.
 
     Distances are relative to L = max(1, |origin|) per ray. A ray is unstable when, among the
@@ -607,6 +607,8 @@ def stable_mask(model, origins, directions, tmin=0.0, tmax=INF, *, sep=1e-5, cos
     or when the first boundary after tmin lies within sep*L of tmax, or when `trials` rays
     jittered by jitter*L disagree on hit/miss, prim, t (> sep*L) or normal (dot < 0.9).
     With return_reasons=True, also returns a dict of the individual (N,) failure masks.
+    Boundaries within same*L of each other are one (coincident faces, which the kernel must
+    answer as one surface), not a reason to call the ray unstable.
     """
     o, d = _rays(origins, directions)
     n = len(o)
@@ -638,7 +640,10 @@ def stable_mask(model, origins, directions, tmin=0.0, tmax=INF, *, sep=1e-5, cos
     ts = np.sort(np.where(win, rt, INF), 1)
     with np.errstate(invalid="ignore"):
         gaps = np.diff(ts, axis=1)
-    reasons["close_boundaries"] = np.any(np.isfinite(ts[:, 1:]) & (gaps <= sep_t[:, None]), 1)
+        close = gaps <= sep_t[:, None]
+        if same > 0:
+            close &= gaps > (same * length / dlen)[:, None]
+    reasons["close_boundaries"] = np.any(np.isfinite(ts[:, 1:]) & close, 1)
     with np.errstate(invalid="ignore"):
         reasons["near_tmax"] = np.isfinite(t_free) & (np.abs(t_free - tmax_a) <= sep_t)
 

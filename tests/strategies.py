@@ -161,3 +161,55 @@ def aimed_rays(model, seed: int, n: int = 64, radius: float = 6.0):
         from reference import leaf_list
     targets = np.array([world[:3, 3] for _, world in leaf_list(model)])
     return make_rays(seed, n, radius, targets=targets)
+
+
+# ---- Touching and coincident faces ----
+
+@st.composite
+def _column(draw, height, scale=1.0):
+    """A solid around the z axis spanning z in [-height/2, height/2] in its own frame."""
+    kind = draw(st.sampled_from(["box", "cylinder", "cone", "prism"]))
+    r = scale * draw(_f(0.3, 0.8))
+    if kind == "box":
+        return Box((2 * r, 2 * r * draw(_f(0.6, 1.0)), height))
+    if kind == "cylinder":
+        return Cylinder(r, height)
+    if kind == "cone":
+        return Cone(r, r * draw(_f(0.2, 1.0)), height)
+    return Prism(draw(st.integers(3, 8)), r, height)
+
+
+@st.composite
+def touching_pairs(draw):
+    """Two solids whose faces coincide in the model but lie in different primitive frames:
+    stacked (one's top cap is the other's bottom), flush (a narrower solid through a wider
+    one, both caps shared), or one round surface twice (a shell and its core, the core
+    rotated about its own centre or axis)."""
+    kind = draw(st.sampled_from(["stacked", "flush", "same_surface"]))
+    op = draw(st.sampled_from(["|", "-", "&"]))
+    turn = draw(_f(-180, 180))
+    offset = (draw(_f(-0.2, 0.2)), draw(_f(-0.2, 0.2)))
+    h1, h2 = draw(_f(0.4, 1.5)), draw(_f(0.4, 1.5))
+    if kind == "stacked":
+        a = draw(_column(h1)).translate((0, 0, -h1 / 2))
+        b = draw(_column(h2)).rotate("z", turn).translate((*offset, h2 / 2))
+    elif kind == "flush":
+        a = draw(_column(h1))
+        b = draw(_column(h1, scale=0.5)).rotate("z", turn).translate((*offset, 0))
+    else:
+        r_out, r_in = draw(_f(0.8, 1.3)), draw(_f(0.3, 0.7))
+        if draw(st.booleans()):
+            a = Sphere(r_out) - Sphere(r_in)
+            b = Sphere(r_in).rotate(tuple(draw(unit_vectors())), turn)
+        else:
+            a = Cylinder(r_out, h1) - Cylinder(r_in, h1)
+            b = Cylinder(r_in, h1).rotate("z", turn)
+        op = "|"
+    return _binary((op, a, b))
+
+
+def touching_models():
+    """A touching pair under a random chain of transforms, alone or inside a random tree."""
+    pair = transformed(touching_pairs(), translate=1.0)
+    return st.one_of(pair, st.tuples(st.sampled_from(["|", "&", "-"]), pair, models(max_leaves=3)).map(_binary),
+                     st.tuples(st.sampled_from(["|", "-"]), models(max_leaves=3), pair).map(_binary))

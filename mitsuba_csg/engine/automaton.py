@@ -12,8 +12,10 @@ and one Return step (pop and hand the hit to the parent), so lanes stay in step.
 
 Registers: `node` (the operation whose children are in play), `t_start` (events must lie
 strictly after it), `t_bound` (events of `node` past it do not matter), the left and right
-hits (t, leaf, info) and the GoTo/Classify/Return state. The traversal mechanisms (restart
-and skip to the sibling's event, bounded search with provisional hits) are described in
+hits (t, leaf, info) and the GoTo/Classify/Return state. Events of the two children closer
+than their tie window (`_tie_window`, docs/accuracy.md) are one event: coincident faces.
+The traversal mechanisms (restart and skip to the sibling's event, bounded search with
+provisional hits) are described in
 `docs/algorithm.md` and switched by `engine.device.TraversalOptions`. A frame is pushed,
 with the node's `t_bound` on a third stack, when GoTo descends into an operation child, and
 popped when that child's subtree returns its hit (which then sits in both hit registers):
@@ -38,7 +40,7 @@ import drjit as dr
 
 from . import layout as K
 from . import shapes
-from .device import KernelTree, gather_prim, node_record
+from .device import TIE_TOLERANCE, KernelTree, gather_prim, node_record
 from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, LEAF, LOOP_CLOSER, MISS, NO_LEAF, RET_CLOSER, RET_L,
                      RET_L_ELSE_LOOP_R, RET_R, RET_R_ELSE_LOOP_L, UNION)
 
@@ -69,11 +71,27 @@ def _box_hit(b, tree, node, o, inv_d, t_start, tmax, active):
 def _leaf_hit(b, tree, flags, prim, o, d, t_start):
     """(t, info) of a leaf node's first event after t_start, complement applied."""
     rows, shape, param, plane_start, plane_count = gather_prim(b, tree, prim)
-    t, face, cls = shapes.first_event(b, shape, rows, param, tree.planes, plane_start, plane_count, o, d, t_start)
+    t, face, cls, slope = shapes.first_event(b, shape, rows, param, tree.planes, plane_start, plane_count, o, d,
+                                             t_start)
     complemented = K.flags_negative(flags)
     # A complemented leaf swaps enter/exit; missing it means being inside it forever.
     cls = dr.select(complemented, _complement_class(cls), cls)
-    return t, K.hit_info(cls, dr.select(complemented, FLIP_BIT, 0), face)
+    return t, K.hit_info(cls, dr.select(complemented, FLIP_BIT, 0), face, slope)
+
+
+def _tie_window(b, tie, slope):
+    """How far in t two events may lie apart and still be one event, for a SLOPE exponent."""
+    return tie * b.Float(b.UInt32(2) << slope)
+
+
+def _tie_tolerance(b, tree, o, d):
+    """Per ray, the t distance below which events of different primitives are one event.
+
+    Hits lie in the root box, so |o + t d| <= extent and every float32 rounding in the maps
+    to the primitives' frames is relative to at most extent + |o| (docs/accuracy.md).
+    """
+    magnitude = dr.opaque(b.Float, tree.extent) + dr.max(dr.abs(o))
+    return TIE_TOLERANCE * magnitude / dr.norm(d)
 
 
 @dr.syntax
@@ -82,6 +100,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     b = tree.b
     n = dr.width(o.x)
     inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
+    tie = _tie_tolerance(b, tree, o, d)
 
     # ---- Loop state (all full width: a width-1 literal stack index misbehaved in Dr.Jit 1.5,
     #      see tests/test_drjit_workarounds.py) ----
@@ -127,7 +146,10 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
             t_start = dr.select(second & fixes, dr.maximum(t_start, t_l), t_start)
         child_bound = t_bound
         if tree.options.bounded_search:
-            child_bound = dr.select(second & ~fixes, dr.minimum(t_bound, t_l), t_bound)
+            # Up to the first child's event and its tie window, so that a coincident event of
+            # the second child is seen as the tie it is.
+            reach = t_l + _tie_window(b, tie, K.info_slope(info_l))
+            child_bound = dr.select(second & ~fixes, dr.minimum(t_bound, reach), t_bound)
         child = dr.select(go_right, node_right, node_left)
         child_flags, child_prim, _, _ = node_record(b, tree, child, going)
         child_is_leaf = K.flags_kind(child_flags) == LEAF
@@ -172,11 +194,16 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         cls_r = dr.select(is_diff, _complement_class(cls_r), cls_r)
         table_op = dr.select(kind == UNION, 0, 1)
         action = dr.gather(b.UInt32, tree.table, table_op * 9 + cls_l * 3 + cls_r, classify)
-        # Ties: a return needs its hit strictly closer, except RET_CLOSER. Where an enter of one
-        # child meets an exit of the other at the same t (touching or coincident faces), the
+        # Ties: a return needs its hit closer by more than the tie window, except
+        # RET_CLOSER. Where an enter of one child meets an exit of the other within it
+        # (touching or coincident faces, each computed in its own primitive's frame), the
         # solid does not change there, so the tie loops instead of reporting a false boundary.
         l_closer = t_l <= t_r
-        l_strictly, r_strictly = t_l < t_r, t_r < t_l
+        # The narrower of the two windows: a coincident pair meets the ray at one slope, and
+        # a steep event next to a grazing one is not widened by it.
+        window = _tie_window(b, tie, dr.minimum(K.info_slope(info_l), K.info_slope(info_r)))
+        apart = dr.abs(t_l - t_r) > window        # false for inf vs inf (NaN)
+        l_strictly, r_strictly = (t_l < t_r) & apart, (t_r < t_l) & apart
         ret_l = (action == RET_L) | ((action == RET_CLOSER) & l_closer) | ((action == RET_L_ELSE_LOOP_R) & l_strictly)
         ret_r = (action == RET_R) | ((action == RET_CLOSER) & ~l_closer) | ((action == RET_R_ELSE_LOOP_L) & r_strictly)
         loop_l = ((action == RET_R_ELSE_LOOP_L) & ~r_strictly) | ((action == LOOP_CLOSER) & l_closer)

@@ -17,7 +17,10 @@ Hit info word (one per returned hit)::
               of a difference, an odd number of times)
     bit  3    PROVISIONAL: not an event but a bound: the subtree was not searched past t, and
               the class says its state before t (ENTER: outside, EXIT: inside)
-    bits 4-31 face index within the primitive (see `engine.shapes`)
+    bits 4-7  SLOPE: k with 2^-(k+1) < |cos| <= 2^-k between the ray and the surface's normal
+              (0 to MAX_SLOPE): the event's tie window is 2^(k+1) tie tolerances (see
+              `engine.automaton`), as t errors grow like 1 / |cos|
+    bits 8-31 face index within the primitive (see `engine.shapes`)
 
 Primitive record: 16 floats per primitive (a power of two, so one gather fetches it)::
 
@@ -67,13 +70,16 @@ def flags_negative(flags):
 CLASS_MASK = 0x3
 FLIP_BIT = 0x4
 PROVISIONAL_BIT = 0x8
-FACE_SHIFT = 4
-_KEEP_FACE = 0xFFFFFFFF ^ (CLASS_MASK | FLIP_BIT)    # a literal: Dr.Jit's UInt32 takes no negative ~mask
+SLOPE_SHIFT = 4
+SLOPE_MASK = 0xF
+MAX_SLOPE = 10            # |cos| below 2^-10 gets the window of 2^-10: grazing rays may still tie wrongly
+FACE_SHIFT = 8
+_KEEP_OTHERS = 0xFFFFFFFF ^ (CLASS_MASK | FLIP_BIT)    # a literal: Dr.Jit's UInt32 takes no negative ~mask
 
 
-def hit_info(cls, flip, face):
-    """The info word of hits: `flip` is 0 or FLIP_BIT."""
-    return cls | flip | (face << FACE_SHIFT)
+def hit_info(cls, flip, face, slope=0):
+    """The info word of hits: `flip` is 0 or FLIP_BIT, `slope` the SLOPE exponent."""
+    return cls | flip | (slope << SLOPE_SHIFT) | (face << FACE_SHIFT)
 
 
 def info_class(info):
@@ -88,13 +94,17 @@ def info_face(info):
     return info >> FACE_SHIFT
 
 
+def info_slope(info):
+    return (info >> SLOPE_SHIFT) & SLOPE_MASK
+
+
 def info_provisional(info):
     return (info & PROVISIONAL_BIT) != 0
 
 
 def with_class(info, cls, flip):
     """`info` with its class replaced by `cls` and its flip bit toggled where `flip` is FLIP_BIT."""
-    return (info & _KEEP_FACE) | cls | ((info & FLIP_BIT) ^ flip)
+    return (info & _KEEP_OTHERS) | cls | ((info & FLIP_BIT) ^ flip)
 
 
 # ---- Primitive record ----

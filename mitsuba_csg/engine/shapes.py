@@ -20,7 +20,7 @@ from typing import Callable
 import drjit as dr
 import numpy as np
 
-from .layout import BOX, CONE, CONVEX, ENTER, EXIT, MISS, SPHERE, TORUS
+from .layout import BOX, CONE, CONVEX, ENTER, EXIT, MAX_SLOPE, MISS, SPHERE, TORUS
 
 # Acceptance slack for cone side/cap candidates near the rim (canonical units).
 _RIM_SLACK = 1e-5
@@ -119,10 +119,14 @@ def _cone(b, o, d, param, plane_buf, start, count):
 
 @dr.syntax
 def _convex(b, o, d, param, plane_buf, start, count):
+    """The interval, and the planes' normals of its ends (for the events' slopes: tracking
+    them here is cheaper than a second gather for every leaf event of every shape)."""
     near = dr.full(b.Float, -dr.inf, dr.width(start))
     far = dr.full(b.Float, dr.inf, dr.width(start))
     near_face = dr.zeros(b.UInt32, dr.width(start))
     far_face = dr.zeros(b.UInt32, dr.width(start))
+    near_normal = dr.zeros(b.Array3f, dr.width(start))
+    far_normal = dr.zeros(b.Array3f, dr.width(start))
     k = dr.zeros(b.UInt32, dr.width(start))
     while dr.hint(k < count, label="csg_convex_planes"):
         plane = dr.gather(b.Array4f, plane_buf, start + k)
@@ -134,13 +138,15 @@ def _convex(b, o, d, param, plane_buf, start, count):
         better_near = entering & (t > near)
         near = dr.select(better_near, t, near)
         near_face = dr.select(better_near, k, near_face)
+        near_normal = dr.select(better_near, n, near_normal)
         better_far = leaving & (t < far)
         far = dr.select(better_far, t, far)
         far_face = dr.select(better_far, k, far_face)
+        far_normal = dr.select(better_far, n, far_normal)
         outside_parallel = (denom == 0) & (dist < 0)
         near = dr.select(outside_parallel, dr.inf, near)
         k += 1
-    return near, far, near_face, far_face
+    return near, far, near_face, far_face, near_normal, far_normal
 
 
 # ---- Torus: root isolation by derivatives, then safeguarded Newton on each bracket ----
@@ -219,14 +225,34 @@ def _torus_events(b, o, d, param):
 
 
 def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o_world, d_world, t_start):
-    """(t, face, class) of the first boundary event of one primitive after t_start (per lane)."""
+    """(t, face, class, slope) of the first boundary event of one primitive after t_start (per lane).
+
+    `slope` is the event's SLOPE exponent (`engine.layout`): how steeply the ray meets the
+    surface there, which scales how far in t float32 rounding can move the event.
+    """
     o = b.Array3f(dr.dot(xf_rows[0], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)),
                   dr.dot(xf_rows[1], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)),
                   dr.dot(xf_rows[2], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)))
     d = b.Array3f(dr.dot(b.Array3f(xf_rows[0].x, xf_rows[0].y, xf_rows[0].z), d_world),
                   dr.dot(b.Array3f(xf_rows[1].x, xf_rows[1].y, xf_rows[1].z), d_world),
                   dr.dot(b.Array3f(xf_rows[2].x, xf_rows[2].y, xf_rows[2].z), d_world))
-    return _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d, t_start)
+    t, face, cls, plane_normal = _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d,
+                                                    t_start)
+    plane = b.Array4f(plane_normal.x, plane_normal.y, plane_normal.z, 0.0)
+    _, grad = surface_function(b.module, shape, face, param, plane, o + t * d)
+    # The world normal is M^T grad for the rows M of world -> canonical; grad . d is the same
+    # in both frames.
+    normal = b.Array3f(*(xf_rows[0][i] * grad.x + xf_rows[1][i] * grad.y + xf_rows[2][i] * grad.z
+                         for i in range(3)))
+    cos = dr.abs(dr.dot(grad, d)) * dr.rsqrt(dr.squared_norm(normal) * dr.squared_norm(d_world))
+    return t, face, cls, slope_exponent(b, cos)
+
+
+def slope_exponent(b, cos):
+    """k with 2^-(k+1) < cos <= 2^-k, clamped to [0, MAX_SLOPE] (NaN, e.g. a cone's apex: MAX_SLOPE)."""
+    biased = dr.reinterpret_array(b.module.Int32, dr.minimum(cos, 1.0)) >> 23     # IEEE exponent + 127
+    k = dr.clip(126 - biased, 0, MAX_SLOPE)
+    return b.UInt32(dr.select(cos > 0, k, MAX_SLOPE))
 
 
 @dr.syntax
@@ -236,12 +262,17 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
     far = dr.full(b.Float, -dr.inf, width)
     near_face = dr.zeros(b.UInt32, width)
     far_face = dr.zeros(b.UInt32, width)
+    near_normal = dr.zeros(b.Array3f, width)
+    far_normal = dr.zeros(b.Array3f, width)
     t = dr.full(b.Float, dr.inf, width)
     face = dr.zeros(b.UInt32, width)
     cls = dr.full(b.UInt32, MISS, width)
     for kind in _INTERVAL_SHAPES:
         if shape == kind.code:
             near, far, near_face, far_face = kind.interval(b, o, d, param, plane_buf, plane_start, plane_count)
+    if shape == CONVEX:
+        near, far, near_face, far_face, near_normal, far_normal = _convex(b, o, d, param, plane_buf, plane_start,
+                                                                          plane_count)
     if shape == TORUS:
         # Pick the first root after t_start; its parity among the roots is its class.
         events, oks = _torus_events(b, o, d, param)
@@ -255,7 +286,7 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
             seen += dr.select(ok, 1, 0)
     else:
         t, face, cls = _interval_event(b, near, far, near_face, far_face, t_start)
-    return t, face, cls
+    return t, face, cls, dr.select(cls == ENTER, near_normal, far_normal)
 
 
 def surface_function(m, shape, face, param, plane, x):
@@ -361,7 +392,8 @@ class Shape:
 
     def __init__(self, code: int, interval: Callable | None, surface: Callable, bounds: Callable):
         self.code = code              # engine.layout shape code
-        self.interval = interval      # (b, o, d, param, planes, start, count) -> (near, far, faces); None: own search
+        self.interval = interval      # (b, o, d, param, planes, start, count) -> (near, far, faces); None: own
+                                      # search in _first_event_local
         self.surface = surface        # (m, face, param, plane, x) -> (g, grad g)
         self.bounds = bounds          # (A, c, param, plane_start, plane_vertices) -> (lower, upper)
 
@@ -371,7 +403,7 @@ SHAPES = (
     Shape(BOX, _box, _box_surface, _box_bounds),
     Shape(CONE, _cone, _cone_surface, _cone_bounds),
     Shape(TORUS, None, _torus_surface, _torus_bounds),     # four roots: _torus_events
-    Shape(CONVEX, _convex, _convex_surface, _convex_bounds),
+    Shape(CONVEX, None, _convex_surface, _convex_bounds),  # also the faces' normals: _convex
 )
 _INTERVAL_SHAPES = tuple(kind for kind in SHAPES if kind.interval is not None)
 
