@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 import common
-from trace_throughput import measure, rays_for
+from trace_throughput import measure, scenes_with_rays
 
 
 def mesh_route(model, o, d, segments, repeats):
@@ -56,12 +56,8 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=3)
     args = common.parse_args(parser, argv)
     import mitsuba_csg as csg
-    from mitsuba_csg import scenes
-    width, height = (int(v) for v in args.size.split("x"))
     rows = []
-    for scene in args.scenes.split(","):
-        model = scenes.named(scene)
-        o, d = rays_for(model, width, height)
+    for scene, model, o, d, width, height in scenes_with_rays(args.scenes.split(","), args.size):
         t0 = time.perf_counter()
         prepared = csg.prepare(model)
         prepare_s = time.perf_counter() - t0

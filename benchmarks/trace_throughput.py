@@ -23,6 +23,16 @@ import common
 SLOW_FRAME_S = 60.0
 
 
+def scenes_with_rays(names, size):
+    """(name, model, origins, directions, width, height) per named scene, with the benchmark
+    camera at `size` ("WIDTHxHEIGHT")."""
+    from mitsuba_csg import scenes
+    width, height = (int(v) for v in size.split("x"))
+    for name in names:
+        model = scenes.named(name)
+        yield (name, model, *rays_for(model, width, height), width, height)
+
+
 def rays_for(model, width, height):
     from mitsuba_csg.camera import framing, look_at_rays
     lo, hi = model.bounds()
@@ -127,12 +137,9 @@ def main(argv=None):
     args = common.parse_args(parser, argv)
     import mitsuba_csg as csg
     from mitsuba_csg import scenes
-    width, height = (int(v) for v in args.size.split("x"))
     rows = []
     names = list(scenes.PAPER_TABLE_2) if args.scenes == "paper" else args.scenes.split(",")
-    for scene in names:
-        model = scenes.named(scene)
-        o, d = rays_for(model, width, height)
+    for scene, model, o, d, width, height in scenes_with_rays(names, args.size):
         results = {}
         for label, optimize in (("-", False), ("+", True)):
             t0 = time.perf_counter()

@@ -34,14 +34,10 @@ def main(argv=None):
     parser.add_argument("--name", default="traversal_mechanisms")
     args = common.parse_args(parser, argv)
     import mitsuba_csg as csg
-    from mitsuba_csg import scenes
     from mitsuba_csg.engine.device import TraversalOptions
-    from trace_throughput import measure, rays_for
-    width, height = (int(v) for v in args.size.split("x"))
+    from trace_throughput import measure, scenes_with_rays
     rows = []
-    for scene in args.scenes.split(","):
-        model = scenes.named(scene)
-        o, d = rays_for(model, width, height)
+    for scene, model, o, d, width, height in scenes_with_rays(args.scenes.split(","), args.size):
         opt, _ = csg.optimize(model)
         base = None
         for label, switches in configurations():

@@ -66,7 +66,6 @@ def placed_solids(g4, world):
 
 def answer(g4, solids, o, d):
     V = g4.G4ThreeVector
-    inside_codes = (g4.EInside.kInside,)
     lows = np.array([s[3] for s in solids]) - 1e-6
     highs = np.array([s[4] for s in solids]) + 1e-6
 
@@ -83,7 +82,8 @@ def answer(g4, solids, o, d):
     for i in range(n):
         p, v = o[i], d[i]
         cand = boxed(p)
-        inside[i] = any(g4.G4VSolid.Inside(solids[k][0], local(solids[k][2], p, v)[0]) in inside_codes for k in cand)
+        inside[i] = any(g4.G4VSolid.Inside(solids[k][0], local(solids[k][2], p, v)[0]) == g4.EInside.kInside
+                        for k in cand)
         if inside[i]:
             # From a boundary point, a solid holds the ray if a point just ahead is inside it
             # (DistanceToOut on a surface point of some solids reports the boundary after it).

@@ -19,14 +19,6 @@ from ..errors import TreeTooDeepError
 
 MAX_STACK = 1024        # deepest tree the per-lane stacks are allocated for
 
-# Events of different primitives closer than a tie window are one event for the state
-# tables (docs/accuracy.md). The window is TIE_TOLERANCE x (the scene's extent + the ray
-# origin's magnitude) / |d|, times 2^(k+1) >= 1 / |cos| of the event's slope: float32 maps
-# into each primitive's own frame put coincident faces up to about 2 ulps of that magnitude
-# apart across the surface (measured on rotated, translated and scaled touching solids), so
-# at normal incidence the window is 16 ulps.
-TIE_TOLERANCE = 8 * 2.0**-23
-
 
 class TraversalOptions:
     """Switches of the automaton's traversal mechanisms (all on by default; tests and

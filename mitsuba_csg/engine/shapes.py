@@ -245,10 +245,10 @@ def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o
     normal = b.Array3f(*(xf_rows[0][i] * grad.x + xf_rows[1][i] * grad.y + xf_rows[2][i] * grad.z
                          for i in range(3)))
     cos = dr.abs(dr.dot(grad, d)) * dr.rsqrt(dr.squared_norm(normal) * dr.squared_norm(d_world))
-    return t, face, cls, slope_exponent(b, cos)
+    return t, face, cls, _slope_exponent(b, cos)
 
 
-def slope_exponent(b, cos):
+def _slope_exponent(b, cos):
     """k with 2^-(k+1) < cos <= 2^-k, clamped to [0, MAX_SLOPE] (NaN, e.g. a cone's apex: MAX_SLOPE)."""
     biased = dr.reinterpret_array(b.module.Int32, dr.minimum(cos, 1.0)) >> 23     # IEEE exponent + 127
     k = dr.clip(126 - biased, 0, MAX_SLOPE)
