@@ -14,7 +14,7 @@ import numpy as np
 
 from .engine import layout as K
 from .engine.automaton import traverse
-from .engine.backend import Backend, default_backend
+from .engine.backend import Backend, default_backend, owned
 from .engine.device import KernelTree, TraversalOptions, node_record, upload
 from .engine.hit_geometry import hit_normal
 from .engine.lowering import FlatTree, lower
@@ -119,7 +119,7 @@ def rays_to_device(array, backend: Backend | None = None):
     """An (N, 3) numpy array as a Dr.Jit Array3f (float32) of `backend` (default: Mitsuba's variant)."""
     b = backend or default_backend()
     a32 = np.ascontiguousarray(np.asarray(array, dtype=np.float64).reshape(-1, 3).T, dtype=np.float32)
-    return b.Array3f(b.Float(a32[0]), b.Float(a32[1]), b.Float(a32[2]))
+    return b.Array3f(*(owned(b.Float, a32[k]) for k in range(3)))
 
 
 def trace(model, origins, directions, tmin: float = 0.0, tmax: float = np.inf, *,

@@ -389,3 +389,43 @@ def test_rays_from_far_away(shape):
     hits = csg.trace(model, o, d)
     stable, total = compare(model, hits, o, d)
     assert stable > 0.8 * total and np.isfinite(hits.t).sum() > 20
+
+
+def test_a_second_model_of_the_same_size_class_compiles_no_kernel():
+    """Model-dependent numbers are opaque and the buffers Dr.Jit's own (aligned), so tracing
+    a second cheese of similar size runs the first one's kernels (Dr.Jit's kernel history)."""
+    import drjit as dr
+    rng = np.random.default_rng(0)
+    o = np.column_stack([rng.uniform(-1, 1, (500, 2)), np.full(500, -5.0)])
+    d = np.tile([0.0, 0.0, 1.0], (500, 1))
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        first = csg.trace(cheese(200, seed=1), o, d)
+        dr.kernel_history()                                   # reading it clears it
+        second = csg.trace(cheese(260, seed=2), o, d)
+        compiled = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT and not k["cache_hit"]]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert np.isfinite(first.t).any() and np.isfinite(second.t).any()
+    assert compiled == [], f"{len(compiled)} new kernels for the second cheese"
+
+
+def test_a_deeper_tree_after_a_shallow_one_gets_its_own_stacks():
+    """Dr.Jit 1.5's kernel hash leaves out the sizes of `alloc_local` arrays, so a kernel
+    compiled for a lone primitive (8-entry stacks) used to be reused for a 40-deep chain:
+    wrong hits or a crash. The stack size is now part of the kernel (its loop condition)."""
+    rng = np.random.default_rng(3)
+    centres, radii = rng.uniform(-3, 3, (40, 3)), rng.uniform(0.5, 1.5, 40)
+    chain = csg.Sphere(2.0)
+    for i, (c, r) in enumerate(zip(centres, radii)):      # alternating: no chain to balance
+        sphere = csg.Sphere(float(r)).translate(c)
+        chain = chain | sphere if i % 2 else chain - sphere
+    targets = np.array([leaf.matrix[:3, 3] for leaf in chain.leaves()])
+    o = rng.uniform(-8, 8, (400, 3))
+    d = targets[rng.integers(0, len(targets), 400)] + rng.normal(0, 0.1, (400, 3)) - o
+    csg.trace(csg.Sphere(1.0), o, d)
+    prepared = csg.prepare(chain, optimize=False)
+    assert prepared.tree.stack_size >= 40
+    hits = csg.trace(prepared, o, d)
+    assert hits.unfinished == 0
+    compare(chain, hits, o, d)

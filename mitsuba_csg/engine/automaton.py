@@ -112,7 +112,10 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
 
     # ---- Loop state (all full width: a width-1 literal stack index misbehaved in Dr.Jit 1.5,
     #      see tests/test_drjit_workarounds.py) ----
-    node = dr.full(b.UInt32, tree.root, n)         # operation node whose children are in play
+    # Model-dependent numbers enter as opaque values, not literals: a literal is compiled into
+    # the kernel, and every new model would compile a new one.
+    node = dr.opaque(b.UInt32, tree.root, n)       # operation node whose children are in play
+    max_iterations = dr.opaque(b.UInt32, tree.max_iterations)
     t_start = b.Float(tmin)                         # re-intersection starts strictly after this
     t_l, leaf_l, info_l = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
     t_r, leaf_r, info_r = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
@@ -129,7 +132,13 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     # Rays that miss the root box are done before the loop starts.
     state = dr.select(_box_hit(b, tree, node, o, inv_d, t_start, tmax, True), state, DONE)
 
-    while dr.hint((state != DONE) & (steps < tree.max_iterations), mode="symbolic", label="csg_traverse"):
+    # `sp < stack_size` never stops a lane (no tree descends deeper than its height), but it
+    # puts the stack size into the kernel's IR: Dr.Jit 1.5 leaves the sizes of `alloc_local`
+    # arrays out of its kernel hash, and without it a kernel compiled for a shallower tree
+    # would run with stacks too small for this one (memory corruption, crashes).
+    stack_size = tree.stack_size
+    while dr.hint((state != DONE) & (steps < max_iterations) & (sp < stack_size), mode="symbolic",
+                  label="csg_traverse"):
         steps += 1
         # Register updates use dr.select rather than nested symbolic ifs: they are cheap, and
         # a literal assigned in two sibling branches misbehaved in Dr.Jit 1.5's LLVM backend

@@ -43,3 +43,17 @@ def default_backend() -> Backend:
     """The backend of Mitsuba's current variant."""
     import mitsuba as mi
     return backend_of(mi.Float)
+
+
+def owned(array_type, values):
+    """A Dr.Jit array holding a copy of `values` in memory Dr.Jit allocated.
+
+    Built from numpy, an LLVM array may map numpy's buffer, and the generated code depends
+    on that buffer's alignment (packet loads or not), so the same model could compile a new
+    kernel each time. An evaluated copy of Dr.Jit's own is always aligned.
+    """
+    source = array_type(values)
+    array = dr.empty(array_type, dr.width(source))
+    dr.scatter(array, source, dr.arange(dr.uint32_array_t(array_type), dr.width(source)))
+    dr.eval(array)
+    return array

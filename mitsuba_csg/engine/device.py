@@ -13,7 +13,7 @@ import drjit as dr
 import numpy as np
 
 from . import layout as K
-from .backend import Backend
+from .backend import Backend, owned
 from .lowering import FlatTree
 from ..errors import TreeTooDeepError
 
@@ -115,11 +115,17 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         # once per ancestor. This bound is far above any real ray and only stops runaways.
         max_iterations = int(min(2**31 - 1, 64 + 8 * n_nodes * (height + 2)))
     return KernelTree(
-        b=b, node_record=b.UInt32(node_record.astype(np.uint32).ravel()),
-        node_box=b.Float(box.astype(np.float32).ravel()), prim_record=b.Float(prim_record.ravel()),
-        planes=b.Float(planes.astype(np.float32).ravel()), table=b.UInt32(K.TABLE_ARRAY),
-        root=int(root), root_is_leaf=root_is_leaf, stack_size=max(1, height), num_nodes=n_nodes,
+        b=b, node_record=owned(b.UInt32, node_record.astype(np.uint32).ravel()),
+        node_box=owned(b.Float, box.astype(np.float32).ravel()), prim_record=owned(b.Float, prim_record.ravel()),
+        planes=owned(b.Float, planes.astype(np.float32).ravel()), table=owned(b.UInt32, K.TABLE_ARRAY),
+        root=int(root), root_is_leaf=root_is_leaf, stack_size=stack_size_class(height), num_nodes=n_nodes,
         num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent, options=options or TraversalOptions())
+
+
+def stack_size_class(height: int) -> int:
+    """Per-lane stack entries for a tree of `height`, rounded up to a power of two (at least 8):
+    the size is compiled into the kernel, so models of similar height share one kernel."""
+    return max(8, 1 << max(0, int(height) - 1).bit_length())
 
 
 def gather_prim(b, tree, prim, active=True):
