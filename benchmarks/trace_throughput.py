@@ -5,6 +5,8 @@
 For each scene: the unoptimized tree ('-': input chains balanced in input order) and the
 optimized one ('+'), both measured in this run; their ratio is the optimizer's speed-up.
 Kernel compile time is measured cold in a fresh process with an empty Dr.Jit kernel cache.
+Cheese scenes also report their solid fraction and the holes a ray crosses before its hit
+(`cheese_statistics`).
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ import time
 
 import numpy as np
 
+import cheese_statistics
 import common
 
 # An unoptimized frame slower than this (estimated from a small frame) is reported as N/A.
@@ -160,6 +163,7 @@ def main(argv=None):
                                   mrays_s=n / timing["min_s"] / 1e6, fps=1.0 / timing["min_s"],
                                   median_mrays_s=n / timing["median_s"] / 1e6, **timing, **info)
             rows.append(results[label])
+        results["+"].update(cheese_statistics.statistics(scene, prepared, o, d))   # the optimized tree
         if "min_s" in results["-"] and "min_s" in results["+"]:
             results["+"]["speedup"] = results["-"]["min_s"] / results["+"]["min_s"]
         if not args.no_path:
@@ -170,7 +174,8 @@ def main(argv=None):
             results["+"].update(cold_compile(scene, args.size, args.variant))
     columns = [("scene", "scene", "s"), ("tree", "tree", "s"), ("primitives", "prims", "d"), ("depth", "depth", "d"),
                ("fps", "fps", ".2f"), ("mrays_s", "Mrays/s", ".2f"), ("median_mrays_s", "median", ".2f"),
-               ("mean_steps", "steps/ray", ".1f"), ("max_steps", "max steps", "d"), ("speedup", "+/-", ".1f"),
+               ("mean_steps", "steps/ray", ".1f"), ("max_steps", "max steps", "d"),
+               ("solid_fraction", "solid", ".3f"), ("holes_crossed", "holes/ray", ".1f"), ("speedup", "+/-", ".1f"),
                ("path_1spp_s", "path 1spp s", ".2f"), ("compile_s", "compile s", ".2f"), ("first_trace_cold_s", "1st trace s", ".2f"),
                ("unfinished", "unfinished", "d"), ("note", "note", "s")]
     print(f"{width}x{height} primary rays, {common.machine()['cpu']}, {os.cpu_count()} cores")

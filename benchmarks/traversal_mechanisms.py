@@ -14,7 +14,7 @@ import argparse
 
 import common
 
-MECHANISMS = ("restart_at_sibling", "skip_to_sibling", "bounded_search")
+MECHANISMS = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first")
 
 
 def configurations():

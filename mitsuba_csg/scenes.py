@@ -4,23 +4,81 @@ benchmarks use.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .errors import CSGError
 from .model import Box, Cone, Cylinder, Node, Prism, Sphere, Torus, difference, union
 
 
-def cheese(holes: int = 500, seed: int = 0, size: float = 2.0) -> Node:
-    """A cube of edge `size` minus `holes` overlapping spheres (the paper's Cheese).
-
-    Hole centres are uniform in the cube; radii uniform in [0.03, 0.12] * size, so holes
-    overlap each other and cut the faces. Leaf 0 is the cube, leaf i the i-th hole.
-    """
+def cheese_holes(holes: int = 500, seed: int = 0, size: float = 2.0, radius_scale: float = 1.0):
+    """(centres, radii) of the Cheese's holes: centres uniform in the cube of edge `size`,
+    radii uniform in [0.03, 0.12] * size * `radius_scale`."""
     rng = np.random.default_rng(seed)
     centres = rng.uniform(-0.5 * size, 0.5 * size, (holes, 3))
-    radii = rng.uniform(0.03, 0.12, holes) * size
+    radii = rng.uniform(0.03, 0.12, holes) * size * radius_scale
+    return centres, radii
+
+
+def cheese(holes: int = 500, seed: int = 0, size: float = 2.0, radius_scale: float = 1.0) -> Node:
+    """A cube of edge `size` minus `holes` overlapping spheres (the paper's Cheese).
+
+    Hole centres are uniform in the cube; radii uniform in [0.03, 0.12] * size (times
+    `radius_scale`), so holes overlap each other and cut the faces. With fixed radii the
+    cheese empties as the count grows (Cheese-8000 is almost all holes); see
+    `constant_porosity_cheese` for the family that keeps Cheese-500's look. Leaf 0 is the
+    cube, leaf i the i-th hole.
+    """
+    centres, radii = cheese_holes(holes, seed, size, radius_scale)
     spheres = [Sphere(float(r)).translate(c) for c, r in zip(centres, radii)]
     return difference(Box(size), *spheres) if holes else Box(size)
+
+
+# The hole count whose solid fraction the constant-porosity family keeps.
+POROSITY_OF = 500
+
+
+def solid_fraction(centres, radii, size: float = 2.0, resolution: int = 80) -> float:
+    """The fraction of the cube of edge `size` that no sphere (centres, radii) covers,
+    counted (float64) on the cell centres of a `resolution`^3 lattice."""
+    step = size / resolution
+    axis = (np.arange(resolution) + 0.5) * step - 0.5 * size
+    covered = np.zeros((resolution,) * 3, bool)
+    # Per sphere, only the lattice block of its bounding box is tested.
+    first = np.clip(np.ceil((centres - radii[:, None] + 0.5 * size) / step - 0.5), 0, resolution).astype(int)
+    last = np.clip(np.floor((centres + radii[:, None] + 0.5 * size) / step - 0.5) + 1, 0, resolution).astype(int)
+    for c, r, (i0, j0, k0), (i1, j1, k1) in zip(centres, radii, first, last):
+        dx, dy, dz = axis[i0:i1] - c[0], axis[j0:j1] - c[1], axis[k0:k1] - c[2]
+        covered[i0:i1, j0:j1, k0:k1] |= (dx[:, None, None] ** 2 + dy[None, :, None] ** 2 + dz[None, None, :] ** 2) < r * r
+    return float(1.0 - covered.mean())
+
+
+@functools.lru_cache(maxsize=None)
+def constant_porosity_scale(holes: int, seed: int = 0, size: float = 2.0) -> float:
+    """The radius scale at which `holes` holes leave Cheese-500's solid fraction.
+
+    Scaling the radii by (500 / holes)^(1/3) keeps the holes' total volume but not the solid
+    fraction: small holes lose less volume outside the cube (0.35 instead of 0.385 at 8000
+    holes). So the scale is found by bisection on the solid fraction, counted on the same
+    lattice as Cheese-500's.
+    """
+    target = solid_fraction(*cheese_holes(POROSITY_OF, seed, size), size)
+    centres, unit = cheese_holes(holes, seed, size)
+    guess = (POROSITY_OF / max(1, holes)) ** (1.0 / 3.0)
+    lo, hi = 0.5 * guess, 1.5 * guess            # solid fraction falls as the scale grows
+    for _ in range(16):
+        mid = 0.5 * (lo + hi)
+        if solid_fraction(centres, unit * mid, size) > target:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def constant_porosity_cheese(holes: int, seed: int = 0, size: float = 2.0) -> Node:
+    """Cheese with `holes` holes, radii scaled to keep Cheese-500's solid fraction."""
+    return cheese(holes, seed, size, constant_porosity_scale(holes, seed, size))
 
 
 def sphere_chain(count: int, seed: int = 0) -> Node:
@@ -92,7 +150,7 @@ def satellites(count: int = 6250, seed: int = 0, spread: float | None = None) ->
     return union(*(one.rotate(tuple(a), float(t)).translate(c) for c, a, t in zip(centres, axes, angles)))
 
 
-__all__ = ["cheese", "city", "satellites", "satellite", "sphere_chain"]
+__all__ = ["cheese", "cheese_holes", "constant_porosity_cheese", "solid_fraction", "city", "satellites", "satellite", "sphere_chain"]
 
 
 # ---- Named scenes: name -> generator call ----
@@ -101,6 +159,10 @@ NAMED = {
     "cheese-1000": lambda: cheese(1000),
     "cheese-8000": lambda: cheese(8000),
     "cheese-32000": lambda: cheese(32000),
+    # Constant porosity: Cheese-500's solid fraction at every count.
+    "cheese-cp-1000": lambda: constant_porosity_cheese(1000),
+    "cheese-cp-8000": lambda: constant_porosity_cheese(8000),
+    "cheese-cp-32000": lambda: constant_porosity_cheese(32000),
     "city-3385": lambda: city(340),
     "city-34k": lambda: city(3400),
     "city-343k": lambda: city(34300),

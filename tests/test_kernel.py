@@ -31,7 +31,8 @@ TRAVERSALS = {
     "no_restart": TraversalOptions(restart_at_sibling=False),
     "no_skip": TraversalOptions(skip_to_sibling=False),
     "no_bound": TraversalOptions(bounded_search=False),
-    "none": TraversalOptions(False, False, False),
+    "no_near_first": TraversalOptions(near_first=False),
+    "none": TraversalOptions(False, False, False, False),
 }
 
 

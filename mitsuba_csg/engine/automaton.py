@@ -15,7 +15,7 @@ strictly after it), `t_bound` (events of `node` past it do not matter), the left
 hits (t, leaf, info) and the GoTo/Classify/Return state. Events of the two children closer
 than their tie window (`_tie_window`, docs/accuracy.md) are one event: coincident faces.
 The traversal mechanisms (restart and skip to the sibling's event, bounded search with
-provisional hits) are described in
+provisional hits, near-first order) are described in
 `docs/algorithm.md` and switched by `engine.device.TraversalOptions`. A frame is pushed,
 with the node's `t_bound` on a third stack, when GoTo descends into an operation child, and
 popped when that child's subtree returns its hit (which then sits in both hit registers):
@@ -32,6 +32,8 @@ LOAD_R     GoTo left after a loop       the right child's hit                the
                                                                              reload the right hit, Classify
 =========  ===========================  ===================================  ==============================
 
+"Left" and "right" in the table are the registers L and R: with near-first order L holds the
+child searched first, which may be the node's right child (`swapped`, kept in the frame).
 A pop at stack depth 0 ends the lane (DONE) with the root's hit in the left register.
 """
 from __future__ import annotations
@@ -54,8 +56,10 @@ TIE_TOLERANCE = 8 * 2.0**-23
 
 # Automaton states (GoTo states: bit 0 = right child, bit 1 = re-intersection after a loop).
 GOTO_L_FRESH, GOTO_R_FRESH, GOTO_L_LOOP, GOTO_R_LOOP, CLASSIFY, RETURN, DONE = range(7)
-# What a pushed frame does when the subtree's hit comes back (see the table above).
+# What a pushed frame does when the subtree's hit comes back (see the table above); the
+# frame also keeps whether the parent's registers hold its children swapped (near_first).
 SAVE_L, LOAD_L, LOAD_R = range(3)
+SWAPPED_FRAME = 4
 
 def _complement_class(cls):
     """The class of the same event for the complement: enter <-> exit, a miss is an exit at infinity."""
@@ -121,6 +125,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     t_r, leaf_r, info_r = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
     state = dr.full(b.UInt32, GOTO_L_FRESH, n)
     t_bound = b.Float(tmax)                         # events of `node` past this do not matter
+    swapped = dr.zeros(b.Bool, n)                   # registers L / R hold `node`'s right / left child
     sp = dr.zeros(b.UInt32, n)                      # shared depth of both stacks
     steps = dr.zeros(b.UInt32, n)
     hit_t = dr.alloc_local(b.Float, tree.stack_size)       # hit stack: t (or a saved t_start)
@@ -167,10 +172,19 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
             # the second child is seen as the tie it is.
             reach = t_l + _tie_window(b, tie, K.info_slope(info_l))
             child_bound = dr.select(second & ~fixes, dr.minimum(t_bound, reach), t_bound)
-        child = dr.select(go_right, node_right, node_left)
+        if dr.hint(tree.options.near_first, mode="scalar"):
+            # A fresh search of a union or intersection takes first the child that lies first
+            # along the ray on the node's ORDER axis (as a BVH's ordered traversal does), so
+            # that its event bounds the other. Registers L and R then hold the right and the
+            # left child (`swapped`); the state tables of both operations are symmetric.
+            axis = K.flags_order(flags)
+            d_axis = dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))
+            right_first = (axis != K.NO_ORDER) & ((d_axis < 0) ^ K.flags_left_high(flags))
+            swapped = dr.select(state == GOTO_L_FRESH, right_first, swapped)
+        child = dr.select(go_right ^ swapped, node_right, node_left)
+        near, far = _box_span(b, tree, child, o, inv_d, going)
         child_flags, child_prim, _, _ = node_record(b, tree, child, going)
         child_is_leaf = K.flags_kind(child_flags) == LEAF
-        near, far = _box_span(b, tree, child, o, inv_d, going)
         reaches = going & (near <= far) & (far >= t_start)      # the box lies (partly) after t_start
         in_box = reaches & (near <= child_bound)
         # Past a bound short of tmax, the subtree's state is known (outside if bounded, inside
@@ -182,7 +196,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         hit_t.write(dr.select(fresh_left, t_start, dr.select(go_right, t_l, t_r)), sp, descend)
         hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, descend)
         hit_info.write(dr.select(go_right, info_l, info_r), sp, descend)
-        frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R)), sp, descend)
+        frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R))
+                    | dr.select(swapped, SWAPPED_FRAME, 0), sp, descend)
         bound.write(t_bound, sp, descend)
         sp = dr.select(descend, sp + 1, sp)
         node = dr.select(descend, child, node)
@@ -272,6 +287,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         sp = dr.select(popping, sp - 1, sp)
         node = dr.select(popping, node_parent, node)
         what = frame.read(sp, popping)
+        swapped = dr.select(popping, (what & SWAPPED_FRAME) != 0, swapped)
+        what = what & (SWAPPED_FRAME - 1)
         t_bound = dr.select(popping, bound.read(sp, popping), t_bound)
         saved_t, saved_leaf, saved_info = hit_t.read(sp, popping), hit_leaf.read(sp, popping), hit_info.read(sp, popping)
         load_l = popping & (what == LOAD_L)      # the hit is the right child's; reload the left

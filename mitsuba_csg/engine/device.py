@@ -28,18 +28,22 @@ class TraversalOptions:
     (the KernelTree) and would try to assign to a frozen one.
     """
 
-    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search")
+    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first")
 
-    def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True):
+    def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True,
+                 near_first: bool = True):
         self.restart_at_sibling = restart_at_sibling   # a loop restarts the looping child at its sibling's event
         self.skip_to_sibling = skip_to_sibling         # a fresh second child starts at the first child's event
                                                        # when that child fixes the node's state
         self.bounded_search = bounded_search           # otherwise the second child is searched only up to the
                                                        # first child's event (provisional results beyond)
+        self.near_first = near_first                   # a fresh union / intersection search starts with the
+                                                       # child whose box the ray enters first
 
     def __repr__(self) -> str:
         return (f"TraversalOptions(restart_at_sibling={self.restart_at_sibling}, "
-                f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search})")
+                f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search}, "
+                f"near_first={self.near_first})")
 
 
 @dataclass
@@ -99,7 +103,8 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     zeros = np.zeros((len(lower), 1))
     box = np.hstack([lower - pad, zeros, upper + pad, zeros])
     box[empty] = np.nan
-    flags = K.node_flags(kind.astype(np.uint32), neg.astype(np.uint32))
+    order, left_high = _child_order(kind, left, right, lower, upper)
+    flags = K.node_flags(kind.astype(np.uint32), neg.astype(np.uint32), order, left_high)
     node_record = np.stack([flags, left, np.where(right < 0, 0, right), np.where(parent < 0, 0, parent)], 1)
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
     prim_record[:, K.PRIM_ROWS:K.PRIM_ROWS + 12] = flat.prim_to_canonical.reshape(-1, 12)
@@ -120,6 +125,27 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         planes=owned(b.Float, planes.astype(np.float32).ravel()), table=owned(b.UInt32, K.TABLE_ARRAY),
         root=int(root), root_is_leaf=root_is_leaf, stack_size=stack_size_class(height), num_nodes=n_nodes,
         num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent, options=options or TraversalOptions())
+
+
+def _child_order(kind, left, right, lower, upper):
+    """Per node, the ORDER axis along which its children's box centres lie furthest apart
+    and whether the left one is higher there (unions and intersections with finite,
+    separated child boxes; NO_ORDER otherwise). A difference keeps its order."""
+    n = len(kind)
+    order = np.full(n, K.NO_ORDER, np.uint32)
+    left_high = np.zeros(n, np.uint32)
+    ops = np.flatnonzero((kind == K.UNION) | (kind == K.INTERSECTION))
+    if len(ops) == 0:
+        return order, left_high
+    with np.errstate(invalid="ignore", over="ignore"):
+        centre = 0.5 * (lower + upper)
+        apart = centre[left[ops]] - centre[right[ops]]
+    apart = np.where(np.isfinite(apart), apart, 0.0)
+    axis = np.argmax(np.abs(apart), axis=1)
+    gap = apart[np.arange(len(ops)), axis]
+    order[ops] = np.where(gap != 0, axis, K.NO_ORDER)
+    left_high[ops] = gap > 0
+    return order, left_high
 
 
 def stack_size_class(height: int) -> int:

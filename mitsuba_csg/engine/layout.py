@@ -9,6 +9,10 @@ Node flags word (one per flat-tree node)::
 
     bits 0-1  node kind: UNION, INTERSECTION, DIFFERENCE or LEAF
     bit  2    NEGATIVE: a complemented leaf, or a co-bounded operation of the positive form
+    bits 3-4  ORDER axis of a union or intersection: the axis along which its children's
+              boxes lie furthest apart (NO_ORDER: none); a ray searches first the child
+              that lies first along its direction on that axis
+    bit  5    LEFT_HIGH: the left child's box centre is the higher one on the ORDER axis
 
 Hit info word (one per returned hit)::
 
@@ -50,11 +54,24 @@ NO_LEAF = 0xFFFFFFFF        # leaf node / primitive index of a miss
 # ---- Node flags ----
 KIND_MASK = 0x3
 NEGATIVE_BIT = 0x4
+ORDER_SHIFT = 3
+ORDER_MASK = 0x3
+NO_ORDER = 3
+LEFT_HIGH_BIT = 0x20
 
 
-def node_flags(kind, negative):
+def node_flags(kind, negative, order=NO_ORDER, left_high=0):
     """The flags word of nodes (numpy integer and bool arrays)."""
-    return kind | (negative << 2)
+    return kind | (negative << 2) | (order << ORDER_SHIFT) | (left_high << 5)
+
+
+def flags_order(flags):
+    """The ORDER axis (0-2) of an operation, or NO_ORDER."""
+    return (flags >> ORDER_SHIFT) & ORDER_MASK
+
+
+def flags_left_high(flags):
+    return (flags & LEFT_HIGH_BIT) != 0
 
 
 def flags_kind(flags):
