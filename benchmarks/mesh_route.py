@@ -6,11 +6,17 @@ optimize + upload -> CSG primary rays, at 1280x720.
 
 `segments` is the circle subdivision of round primitives in the mesh (48: a sphere spanning
 ~100 pixels shows no facets at 1280x720 in a diffuse render; raise it for close-ups).
+
+Unless `--no-path`, it also renders one 1-spp frame of the same scene (the command line's
+model scene: floor, sky, sun, max_depth 6, one diffuse BSDF) both ways: `csg_path` with the
+CSG shape, and Mitsuba's own `path` with the mesh in its place.
 """
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -45,7 +51,31 @@ def mesh_route(model, o, d, segments, repeats):
         dr.eval(si.t, si.n, si.prim_index)
         dr.sync_thread()
     timing = common.best_of(run, repeats)
-    return dict(triangles=len(tris), boolean_s=boolean_s, scene_build_s=build_s, embree_s=timing["min_s"])
+    return mesh, dict(triangles=len(tris), boolean_s=boolean_s, scene_build_s=build_s, embree_s=timing["min_s"])
+
+
+def path_frames(model, mesh, width, height, repeats, directory) -> dict:
+    """Seconds of a 1-spp frame: csg_path on the CSG shape and Mitsuba's path on its mesh."""
+    import drjit as dr
+    import mitsuba as mi
+
+    import mitsuba_csg as csg
+    from mitsuba_csg.cli import model_scene_dict
+    csg_dict = model_scene_dict(mi, csg, model, width, height, 1, "csg_path")
+    mesh_dict = model_scene_dict(mi, csg, model, width, height, 1, "path")
+    ply = str(directory / "mesh.ply")
+    mesh.write_ply(ply)
+    mesh_dict["model"] = {"type": "ply", "filename": ply, "bsdf": mesh_dict["model"]["bsdf"]}
+    out = {}
+    for key, scene_dict in (("csg_path_s", csg_dict), ("mesh_path_s", mesh_dict)):
+        scene = mi.load_dict(scene_dict)
+
+        def run():
+            dr.eval(mi.render(scene, spp=1))
+            dr.sync_thread()
+        out[key] = common.best_of(run, repeats)["min_s"]
+    out["path_ratio"] = out["csg_path_s"] / out["mesh_path_s"]
+    return out
 
 
 def main(argv=None):
@@ -54,6 +84,8 @@ def main(argv=None):
     parser.add_argument("--segments", type=int, default=48)
     parser.add_argument("--size", default="1280x720")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--no-path", action="store_true", help="skip the csg_path / path frames")
+    parser.add_argument("--name", default="mesh_route")
     args = common.parse_args(parser, argv)
     import mitsuba_csg as csg
     rows = []
@@ -64,7 +96,11 @@ def main(argv=None):
         timing, info = measure(prepared, o, d, args.repeats)
         row = dict(scene=scene, primitives=prepared.flat.num_prims, csg_prepare_s=prepare_s,
                    csg_trace_s=timing["min_s"], csg_mrays_s=width * height / timing["min_s"] / 1e6)
-        row.update(mesh_route(model, o, d, args.segments, args.repeats))
+        mesh, mesh_row = mesh_route(model, o, d, args.segments, args.repeats)
+        row.update(mesh_row)
+        if not args.no_path:
+            with tempfile.TemporaryDirectory() as directory:
+                row.update(path_frames(model, mesh, width, height, args.repeats, Path(directory)))
         row["embree_mrays_s"] = width * height / row["embree_s"] / 1e6
         row["csg_first_frame_s"] = row["csg_prepare_s"] + row["csg_trace_s"]
         row["mesh_first_frame_s"] = row["boolean_s"] + row["scene_build_s"] + row["embree_s"]
@@ -75,10 +111,11 @@ def main(argv=None):
                ("boolean_s", "booleans s", ".2f"), ("scene_build_s", "build s", ".2f"),
                ("embree_s", "Embree s", ".3f"), ("csg_prepare_s", "optimize s", ".2f"), ("csg_trace_s", "CSG s", ".3f"),
                ("trace_ratio", "CSG/Embree", ".1f"), ("mesh_first_frame_s", "mesh 1st frame s", ".2f"),
-               ("csg_first_frame_s", "CSG 1st frame s", ".2f")]
+               ("csg_first_frame_s", "CSG 1st frame s", ".2f"), ("mesh_path_s", "path s", ".2f"),
+               ("csg_path_s", "csg_path s", ".2f"), ("path_ratio", "csg_path/path", ".1f")]
     print(f"{width}x{height} primary rays, segments={args.segments}")
     print(common.table(rows, columns))
-    print(f"wrote {common.write('mesh_route', {'machine': common.machine(), 'args': vars(args), 'rows': rows})}")
+    print(f"wrote {common.write(args.name, {'machine': common.machine(), 'args': vars(args), 'rows': rows})}")
 
 
 if __name__ == "__main__":
