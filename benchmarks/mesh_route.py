@@ -24,24 +24,25 @@ import common
 from trace_throughput import measure, scenes_with_rays
 
 
-def mesh_route(model, o, d, segments, repeats):
-    import drjit as dr
+def mitsuba_mesh(manifold):
+    """A Mitsuba mesh of a manifold3d.Manifold."""
     import mitsuba as mi
 
-    import mitsuba_csg as csg
     from mitsuba_csg.formats.mesh_export import mesh_arrays
-    t0 = time.perf_counter()
-    manifold = csg.to_mesh(model, segments=segments)
-    boolean_s = time.perf_counter() - t0
     verts, tris = mesh_arrays(manifold)
-    t0 = time.perf_counter()
     mesh = mi.Mesh("csg-mesh", len(verts), len(tris))
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(verts.astype(np.float32).ravel())
     params["faces"] = mi.UInt32(tris.astype(np.uint32).ravel())
     params.update()
-    scene = mi.load_dict({"type": "scene", "mesh": mesh})
-    build_s = time.perf_counter() - t0
+    return mesh
+
+
+def embree_primary(manifold, o, d, repeats, mesh=None) -> float:
+    """Best seconds of Embree primary rays (t, normal, primitive) on the mesh of `manifold`."""
+    import drjit as dr
+    import mitsuba as mi
+    scene = mi.load_dict({"type": "scene", "mesh": mesh if mesh is not None else mitsuba_mesh(manifold)})
     ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, i].astype(np.float32)) for i in range(3))),
                    mi.Vector3f(*(mi.Float(d[:, i].astype(np.float32)) for i in range(3))))
     dr.eval(ray)
@@ -50,8 +51,19 @@ def mesh_route(model, o, d, segments, repeats):
         si = scene.ray_intersect(ray)
         dr.eval(si.t, si.n, si.prim_index)
         dr.sync_thread()
-    timing = common.best_of(run, repeats)
-    return mesh, dict(triangles=len(tris), boolean_s=boolean_s, scene_build_s=build_s, embree_s=timing["min_s"])
+    return common.best_of(run, repeats)["min_s"]
+
+
+def mesh_route(model, o, d, segments, repeats):
+    import mitsuba_csg as csg
+    t0 = time.perf_counter()
+    manifold = csg.to_mesh(model, segments=segments)
+    boolean_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    mesh = mitsuba_mesh(manifold)
+    build_s = time.perf_counter() - t0
+    embree_s = embree_primary(manifold, o, d, repeats, mesh)
+    return mesh, dict(triangles=manifold.num_tri(), boolean_s=boolean_s, scene_build_s=build_s, embree_s=embree_s)
 
 
 def path_frames(model, mesh, width, height, repeats, directory) -> dict:

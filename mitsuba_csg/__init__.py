@@ -20,8 +20,8 @@ from .variant import ensure_variant
 ensure_variant()
 
 from .errors import CSGError, ModelError, TreeTooDeepError  # noqa: E402
-from .model import (Box, Cone, ConvexPolyhedron, Cylinder, Node, Operation, Primitive, Prism, Sphere,  # noqa: E402
-                    Torus, difference, intersection, union)
+from .model import (Box, Cone, ConvexPolyhedron, Cylinder, Mesh, MeshOrientationWarning, Node, Operation,  # noqa: E402
+                    Primitive, Prism, Sphere, Torus, difference, intersection, union)
 from .engine.optimize import OptimizedModel, optimize  # noqa: E402
 from .queries import (Hits, IterationLimitWarning, Prepared, RayHits, contains, prepare, rays_to_device,  # noqa: E402
                       trace, trace_rays)
@@ -53,7 +53,8 @@ def to_mesh(model, segments: int = 64):
 
 
 __all__ = [
-    "Box", "CSGError", "Cone", "ConvexPolyhedron", "Cylinder", "Hits", "IterationLimitWarning", "ModelError",
+    "Box", "CSGError", "Cone", "ConvexPolyhedron", "Cylinder", "Hits", "IterationLimitWarning", "Mesh",
+    "MeshOrientationWarning", "ModelError",
     "Node", "Operation", "OptimizedModel", "Prepared", "Primitive", "Prism", "RayHits", "Sphere", "Torus",
     "TreeTooDeepError", "contains", "difference", "intersection", "load", "model_ref", "optimize", "prepare",
     "rays_to_device", "register_plugins", "save", "to_mesh", "trace", "trace_rays", "union",

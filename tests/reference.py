@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mitsuba_csg.model import Operation
+from mitsuba_csg.model.mesh import Mesh
 from mitsuba_csg.model.primitives import Box, Cone, ConvexPolyhedron, Prism, Sphere, Torus
 
 INF = np.inf
@@ -60,7 +61,7 @@ def _postorder(model, leaf_fn, op_fn):
                 stack.append((node, world, True))
                 for child in reversed(node.children):
                     stack.append((child, world, False))
-        elif isinstance(node, (Sphere, Box, Cone, Torus, ConvexPolyhedron)):
+        elif isinstance(node, (Sphere, Box, Cone, Torus, ConvexPolyhedron, Mesh)):
             world = parent @ np.asarray(node.matrix, dtype=np.float64)
             values.append(leaf_fn(node, world, counter))
             counter += 1
@@ -427,6 +428,65 @@ def _torus(o, d, R, r):
     return _extract(t, state, np.zeros((n, 4), np.int64), nrm, np.full((n, 4), INF))
 
 
+def _mesh_grown(prim, g):
+    """The mesh's vertices moved by g along their (area-weighted) vertex normals."""
+    v, f = np.asarray(prim.vertices, dtype=np.float64), np.asarray(prim.faces)
+    if not g:
+        return v
+    face_n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], face_n)
+    vn /= np.linalg.norm(vn, axis=1, keepdims=True)
+    return v + g * vn
+
+
+def _mesh_crossings(o, d, v, f):
+    """Per ray and triangle (Moeller-Trumbore, float64, edges inclusive): t (inf where the
+    ray misses the triangle), unit outward normals, and the t distance to the nearest edge."""
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    e1, e2 = b - a, c - a
+    n = np.cross(e1, e2)
+    area2 = np.linalg.norm(n, axis=1)
+    longest = np.max(np.stack([np.linalg.norm(e1, axis=1), np.linalg.norm(e2, axis=1),
+                               np.linalg.norm(c - b, axis=1)]), axis=0)
+    p = np.cross(d[:, None, :], e2[None])                      # (N, T, 3)
+    det = np.einsum("tk,ntk->nt", e1, p)
+    s = o[:, None, :] - a[None]
+    q = np.cross(s, e1[None])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.einsum("ntk,ntk->nt", s, p) / det
+        w = np.einsum("nk,ntk->nt", d, q) / det
+        t = np.einsum("tk,ntk->nt", e2, q) / det
+    hit = (det != 0) & (u >= 0) & (w >= 0) & (u + w <= 1)
+    t = np.where(hit, t, INF)
+    bary = np.minimum(np.minimum(u, w), 1.0 - u - w)
+    margin = np.where(hit, bary * (area2 / longest)[None] / np.linalg.norm(d, axis=1)[:, None], INF)
+    return t, n / area2[:, None], margin
+
+
+def _mesh(o, d, prim, grow):
+    """Intervals of a closed mesh: state after each crossing from the side it is crossed from."""
+    v = _mesh_grown(prim, grow)
+    t, n, margin = _mesh_crossings(o, d, v, np.asarray(prim.faces))
+    order = np.argsort(t, axis=1)
+    t = np.take_along_axis(t, order, 1)
+    normal = n[order]
+    margin = np.take_along_axis(margin, order, 1)
+    inside = np.einsum("ntk,nk->nt", normal, d) < 0
+    # An edge or vertex crossing is seen by several triangles at (nearly) one t: one event.
+    with np.errstate(invalid="ignore"):
+        repeat = np.zeros_like(inside)
+        repeat[:, 1:] = (np.abs(np.diff(t, axis=1)) <= 1e-12 * np.maximum(1.0, np.abs(t[:, 1:]))) & \
+            (inside[:, 1:] == inside[:, :-1])
+    t = np.where(repeat, INF, t)
+    order = np.argsort(t, axis=1)
+    t, normal = np.take_along_axis(t, order, 1), normal[np.arange(len(o))[:, None], order]
+    inside, margin = np.take_along_axis(inside, order, 1), np.take_along_axis(margin, order, 1)
+    inside = inside & np.isfinite(t)
+    return _extract(t, inside, np.zeros(t.shape, np.int64), normal, margin)
+
+
 def _leaf_raw(prim, world, index, o, d, grow=0.0):
     """Raw (unregularized) world-frame intervals of one primitive. grow is in world units."""
     n = len(o)
@@ -438,6 +498,8 @@ def _leaf_raw(prim, world, index, o, d, grow=0.0):
     if isinstance(prim, Torus):
         minor = max(prim.minor_radius + g, 1e-9 * prim.minor_radius)
         L = _torus(ol, dl, prim.major_radius, minor)
+    elif isinstance(prim, Mesh):
+        L = _mesh(ol, dl, prim, g)
     else:
         if isinstance(prim, Sphere):
             hit, t0, t1, n0, n1, m0, m1 = _sphere(ol, dl, max(prim.radius + g, 0.0))
@@ -573,6 +635,11 @@ def _contains_leaf(prim, world, p):
     if isinstance(prim, Box):
         hs = 0.5 * np.asarray(prim.size)
         return np.all(np.abs(q) <= hs, axis=1)
+    if isinstance(prim, Mesh):
+        # Parity of the crossings of a ray in a fixed, generic direction.
+        ray = np.broadcast_to(np.array([0.5214, 0.3331, 0.7856]), q.shape)
+        t, _, _ = _mesh_crossings(q, ray, np.asarray(prim.vertices, dtype=np.float64), np.asarray(prim.faces))
+        return np.sum(np.isfinite(t) & (t > 0), axis=1) % 2 == 1
     nn, dd = _planes_of(prim)
     return np.all(q @ nn.T <= dd, axis=1)
 

@@ -213,3 +213,43 @@ def touching_models():
     pair = transformed(touching_pairs(), translate=1.0)
     return st.one_of(pair, st.tuples(st.sampled_from(["|", "&", "-"]), pair, models(max_leaves=3)).map(_binary),
                      st.tuples(st.sampled_from(["|", "-"]), models(max_leaves=3), pair).map(_binary))
+
+
+# ---- Closed triangle meshes (mesh leaves), made by manifold3d ----
+
+def _mesh_of(manifold):
+    from mitsuba_csg.model.mesh import Mesh
+    return Mesh.from_manifold(manifold)
+
+
+@st.composite
+def meshes(draw):
+    """Convex hulls of random points, tori, extruded stars and coarse spheres and cylinders."""
+    import manifold3d as m3
+    kind = draw(st.sampled_from(["hull", "torus", "star", "sphere", "cylinder"]))
+    seed = draw(st.integers(0, 2**31))
+    rng = np.random.default_rng(seed)
+    if kind == "hull":
+        return _mesh_of(m3.Manifold.hull_points(rng.normal(size=(draw(st.integers(5, 16)), 3)) * 0.7))
+    if kind == "torus":
+        minor = draw(_f(0.15, 0.4))
+        ring = m3.CrossSection.circle(minor, draw(st.integers(4, 10))).translate((draw(_f(0.5, 1.0)), 0.0))
+        return _mesh_of(m3.Manifold.revolve(ring, draw(st.integers(5, 16))))
+    if kind == "star":
+        points = draw(st.integers(3, 7))
+        inner = draw(_f(0.25, 0.7))
+        angles = np.linspace(0.0, 2.0 * np.pi, 2 * points, endpoint=False)
+        radii = np.where(np.arange(2 * points) % 2 == 0, 1.0, inner)
+        outline = np.column_stack([radii * np.cos(angles), radii * np.sin(angles)])
+        prism = m3.Manifold.extrude(m3.CrossSection([outline.tolist()]), draw(_f(0.4, 1.5)))
+        return _mesh_of(prism.translate((0.0, 0.0, -0.5)))
+    if kind == "sphere":
+        return _mesh_of(m3.Manifold.sphere(draw(_f(0.3, 1.1)), draw(st.integers(4, 12))))
+    return _mesh_of(m3.Manifold.cylinder(draw(_f(0.4, 1.5)), draw(_f(0.2, 0.9)), -1.0, draw(st.integers(3, 10)),
+                                        center=True))
+
+
+def models_with_meshes(max_leaves: int = 6):
+    """Random trees whose leaves are meshes or analytic primitives."""
+    leaves = transformed(st.one_of(meshes(), meshes(), primitives()))
+    return st.recursive(leaves, _operations, max_leaves=max_leaves)

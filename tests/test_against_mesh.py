@@ -90,12 +90,25 @@ def paper_cheese():
     return cheese(200, seed=1)
 
 
+def star_mesh_minus_sphere():
+    """A mesh leaf (an extruded five-pointed star, non-convex) in a tree: its triangles are
+    exact in both the kernel and the reference mesh."""
+    import manifold3d as m3
+    angles = np.linspace(0.0, 2.0 * np.pi, 10, endpoint=False)
+    radii = np.where(np.arange(10) % 2 == 0, 1.2, 0.5)
+    star = m3.Manifold.extrude(m3.CrossSection([np.column_stack([radii * np.cos(angles),
+                                                                  radii * np.sin(angles)]).tolist()]), 0.8)
+    mesh = csg.Mesh.from_manifold(star.translate((0.0, 0.0, -0.4))).rotate((1.0, 0.3, 0.2), 35.0)
+    return mesh - csg.Sphere(0.55).translate((0.2, 0.1, 0.3))
+
+
 # (factory, segments): 200 holes at 256 segments would be a 3.8M-triangle mesh that takes
 # manifold3d ~40 s; the holes are small (radius <= 0.24), so 64 segments keep the gap small.
 FIXED = {
     "cheese": (paper_cheese, 64),
     "torus-minus-box": (torus_minus_box, SEGMENTS),
     "prism-and-sphere": (prism_and_sphere, SEGMENTS),
+    "star-mesh-minus-sphere": (star_mesh_minus_sphere, SEGMENTS),
 }
 
 ROUND = (csg.Sphere, csg.Cone, csg.Torus)   # Cylinder is a Cone; Box, Prism, polyhedra are exact

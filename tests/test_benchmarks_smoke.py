@@ -37,6 +37,7 @@ def test_generators(make, prims):
     ("accuracy.py", ["--models", "2", "--rays", "16"]),
     ("scaling.py", ["--quick"]),
     ("traversal_mechanisms.py", ["--scenes", "cheese-500", "--size", "32x18", "--repeats", "1"]),
+    ("mesh_leaves.py", ["--triangles", "2000", "--holes", "20", "--size", "32x18", "--repeats", "1"]),
 ])
 def test_benchmark_scripts(script, args, tmp_path):
     env = {**__import__("os").environ, "MITSUBA_CSG_BENCH_RESULTS": str(tmp_path)}

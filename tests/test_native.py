@@ -9,6 +9,7 @@ import random
 import re
 from pathlib import Path
 
+import manifold3d
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -18,6 +19,7 @@ from mitsuba_csg.formats import native_json as native
 from mitsuba_csg.errors import ModelError
 from mitsuba_csg.model import Node, Operation, difference, union
 from mitsuba_csg.formats.native_json import FormatError, from_dict, load, load_with_materials, save, to_dict
+from mitsuba_csg.model.mesh import Mesh
 from mitsuba_csg.model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
 from strategies import models
 
@@ -91,7 +93,8 @@ def every_primitive_model() -> Node:
     octa = [[sx, sy, sz, 1.0] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
     parts = [Sphere(0.5), Box((1, 2, 3)).rotate("z", 30), Cylinder(0.3, 2).rotate((1, 1, 0), 45),
              Cone(0.5, 0.0, 1.0).scale((1, 2, -1)), Torus(1.0, 0.2).translate((0, 0, 1)),
-             Prism(6, 0.4, 1.0).with_material("gold"), ConvexPolyhedron(octa).scale(0.7)]
+             Prism(6, 0.4, 1.0).with_material("gold"), ConvexPolyhedron(octa).scale(0.7),
+             Mesh.from_manifold(manifold3d.Manifold.sphere(0.4, 8)).translate((0.5, 0.0, 0.0))]
     return difference(union(*parts[:4]).with_material("red"), *parts[4:]).translate((0.1, 0.2, 0.3))
 
 
@@ -133,7 +136,7 @@ def test_round_trip_keeps_every_primitive_type_and_structure(tmp_path):
     save(model, tmp_path / "m.json", MATERIALS)
     loaded = load(tmp_path / "m.json")
     assert_same_leaves(model, loaded)
-    assert isinstance(loaded, Operation) and loaded.kind == "difference" and len(loaded.children) == 4
+    assert isinstance(loaded, Operation) and loaded.kind == "difference" and len(loaded.children) == 5
     assert loaded.children[0].kind == "union" and len(loaded.children[0].children) == 4
     types = [n["type"] for n in to_dict(model)["root"]["children"][0]["children"]]
     assert types == ["sphere", "box", "cylinder", "cone"]
@@ -264,7 +267,7 @@ def in_union(node) -> dict:
     # node type and keys
     ({"type": "sphre", "radius": 1}, r"root\.children\[1\]\.type: unknown node type 'sphre'; "
                                      r"known node types: sphere, box, cylinder, cone, torus, prism, "
-                                     r"convex_polyhedron, union, intersection, difference$"),
+                                     r"convex_polyhedron, mesh, union, intersection, difference$"),
     ({"radius": 1}, r'root\.children\[1\]: missing key "type"; known node types: sphere'),
     ([1, 2], r"root\.children\[1\]: expected a node .* got a list of 2 items"),
     ({"type": "sphere"}, r"root\.children\[1\]: a sphere needs 'radius' \(missing\)"),

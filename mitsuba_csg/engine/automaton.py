@@ -80,11 +80,13 @@ def _box_hit(b, tree, node, o, inv_d, t_start, tmax, active):
     return (near <= far) & (far >= t_start) & (near <= tmax)
 
 
-def _leaf_hit(b, tree, flags, prim, o, d, t_start):
+def _leaf_hit(b, tree, flags, prim, o, d, t_start, tie):
     """(t, info) of a leaf node's first event after t_start, complement applied."""
     rows, shape, param, plane_start, plane_count = gather_prim(b, tree, prim)
+    # A mesh's crossings within a tie window after t_start are the event at t_start again.
+    mesh = (tree.triangles, tree.mesh_nodes, 2.0 * tie) if tree.has_meshes else None
     t, face, cls, slope = shapes.first_event(b, shape, rows, param, tree.planes, plane_start, plane_count, o, d,
-                                             t_start)
+                                             t_start, mesh)
     complemented = K.flags_negative(flags)
     # A complemented leaf swaps enter/exit; missing it means being inside it forever.
     cls = dr.select(complemented, _complement_class(cls), cls)
@@ -209,7 +211,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
         info_c = dr.select(provisional, dr.select(co_bounded, b.UInt32(EXIT), b.UInt32(ENTER)) | K.PROVISIONAL_BIT,
                            info_c)
         if in_box & child_is_leaf:
-            t_c, info_c = _leaf_hit(b, tree, child_flags, child_prim, o, d, t_start)
+            t_c, info_c = _leaf_hit(b, tree, child_flags, child_prim, o, d, t_start, tie)
         known = going & ~descend
         set_r, set_l = known & go_right, known & ~go_right
         t_r, leaf_r, info_r = dr.select(set_r, t_c, t_r), dr.select(set_r, child, leaf_r), dr.select(set_r, info_c, info_r)

@@ -53,7 +53,9 @@ class KernelTree:
     node_record: object     # UInt32, 4 per node: flags, left child or primitive index, right child, parent
     node_box: object        # Float, 8 per node: lower xyz, 0, upper xyz, 0 (padded outwards; NaN if empty)
     prim_record: object     # Float, 16 per primitive (layout.PRIM_*)
-    planes: object          # Float, 4 per plane
+    planes: object          # Float, 4 per plane (convex faces and mesh triangles)
+    triangles: object       # Float, 12 per plane row (mesh triangles; zeros for convex planes)
+    mesh_nodes: object      # Float, 8 per mesh BVH node (layout.MESH_NODE_FLOATS)
     table: object           # UInt32 state table, 18 entries (layout.STATE_TABLE)
     root: int
     root_is_leaf: bool
@@ -62,6 +64,7 @@ class KernelTree:
     num_prims: int
     max_iterations: int
     extent: float           # largest |coordinate| of the root box: the scene's magnitude for ties
+    has_meshes: bool        # the kernel includes the mesh BVH walk only where there are mesh leaves
     options: TraversalOptions = field(default_factory=TraversalOptions)
 
 
@@ -111,7 +114,11 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     prim_record[:, K.PRIM_PARAMS:K.PRIM_PARAMS + 2] = flat.prim_param
     words = np.stack([flat.prim_plane_start, K.count_shape(flat.prim_plane_count, flat.prim_shape)], 1)
     prim_record[:, K.PRIM_PLANE_START:K.PRIM_COUNT_SHAPE + 1] = words.astype(np.uint32).view(np.float32)
+    is_mesh = flat.prim_shape == K.MESH
+    prim_record[is_mesh, K.PRIM_PARAMS:K.PRIM_PARAMS + 2] = flat.prim_param[is_mesh].astype(np.uint32).view(np.float32)
     planes = flat.planes if len(flat.planes) else np.zeros((1, 4))
+    triangles = flat.triangles if flat.triangles is not None and len(flat.triangles) else np.zeros((1, 12))
+    mesh_nodes = _mesh_node_records(flat)
     n_nodes = len(kind)
     root_corners = np.abs(np.concatenate([lower[root], upper[root]]))
     extent = float(np.max(root_corners[np.isfinite(root_corners)], initial=0.0))
@@ -122,9 +129,27 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     return KernelTree(
         b=b, node_record=owned(b.UInt32, node_record.astype(np.uint32).ravel()),
         node_box=owned(b.Float, box.astype(np.float32).ravel()), prim_record=owned(b.Float, prim_record.ravel()),
-        planes=owned(b.Float, planes.astype(np.float32).ravel()), table=owned(b.UInt32, K.TABLE_ARRAY),
+        planes=owned(b.Float, planes.astype(np.float32).ravel()),
+        triangles=owned(b.Float, triangles.astype(np.float32).ravel()),
+        mesh_nodes=owned(b.Float, mesh_nodes.ravel()), table=owned(b.UInt32, K.TABLE_ARRAY),
         root=int(root), root_is_leaf=root_is_leaf, stack_size=stack_size_class(height), num_nodes=n_nodes,
-        num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent, options=options or TraversalOptions())
+        num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent,
+        has_meshes=bool(np.any(flat.prim_shape == K.MESH)), options=options or TraversalOptions())
+
+
+def _mesh_node_records(flat: FlatTree) -> np.ndarray:
+    """(K, 8) float32 mesh BVH node records (one dummy record when there are no meshes)."""
+    if flat.mesh_escape is None or not len(flat.mesh_escape):
+        return np.zeros((1, K.MESH_NODE_FLOATS), np.float32)
+    # Pad outwards as for the tree's boxes, so float32 rounding never culls a triangle.
+    extent = np.maximum(np.abs(flat.mesh_lower), np.abs(flat.mesh_upper))
+    pad = 1e-5 * (flat.mesh_upper - flat.mesh_lower) + 1e-6 * extent + 1e-30
+    record = np.zeros((len(flat.mesh_escape), K.MESH_NODE_FLOATS), np.float32)
+    record[:, 0:3] = flat.mesh_lower - pad
+    record[:, 4:7] = flat.mesh_upper + pad
+    record[:, 3] = flat.mesh_escape.astype(np.uint32).view(np.float32)
+    record[:, 7] = K.mesh_tris(flat.mesh_first, flat.mesh_count).astype(np.uint32).view(np.float32)
+    return record
 
 
 def _child_order(kind, left, right, lower, upper):

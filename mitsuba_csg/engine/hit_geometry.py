@@ -26,9 +26,9 @@ def _normal_to_world(m, rows, n_local):
 
 
 def _face_plane(m, planes, shape, plane_start, info, active):
-    """The plane of the hit face of convex primitives (ignored for the other shapes)."""
+    """The plane of the hit face of convex primitives and meshes (ignored for the other shapes)."""
     face = K.info_face(info)
-    return face, dr.gather(m.Array4f, planes, plane_start + face, active & (shape == K.CONVEX))
+    return face, dr.gather(m.Array4f, planes, plane_start + face, active & ((shape == K.CONVEX) | (shape == K.MESH)))
 
 
 def hit_normal(tree, prim, info, o, d, t, active):

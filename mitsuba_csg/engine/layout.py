@@ -29,8 +29,10 @@ Hit info word (one per returned hit)::
 Primitive record: 16 floats per primitive (a power of two, so one gather fetches it)::
 
     0-11   rows of the world -> canonical affine map
-    12-13  two shape parameters (cone radii, torus minor radius)
-    14     first plane of a convex primitive (uint32 bits)
+    12-13  two shape parameters (cone radii, torus minor radius); a mesh: its BVH's root and
+           end node (uint32 bits)
+    14     first plane of a convex primitive or mesh (uint32 bits; a mesh's triangle k is
+           plane and triangle row start + k)
     15     plane count | shape code << 16 (uint32 bits)
 """
 from __future__ import annotations
@@ -42,8 +44,8 @@ UNION, INTERSECTION, DIFFERENCE, LEAF = 0, 1, 2, 3
 KIND_NAMES = {UNION: "union", INTERSECTION: "intersection", DIFFERENCE: "difference", LEAF: "leaf"}
 
 # ---- Canonical shapes (model primitives name theirs; the kernel knows these codes) ----
-SPHERE, BOX, CONE, TORUS, CONVEX = 0, 1, 2, 3, 4
-SHAPE_CODES = {"sphere": SPHERE, "box": BOX, "cone": CONE, "torus": TORUS, "convex": CONVEX}
+SPHERE, BOX, CONE, TORUS, CONVEX, MESH = 0, 1, 2, 3, 4, 5
+SHAPE_CODES = {"sphere": SPHERE, "box": BOX, "cone": CONE, "torus": TORUS, "convex": CONVEX, "mesh": MESH}
 SHAPE_NAMES = {code: name for name, code in SHAPE_CODES.items()}
 
 # ---- Event classes ----
@@ -141,6 +143,27 @@ def record_shape(word):
 
 def record_plane_count(word):
     return word & PLANE_COUNT_MASK
+
+
+# ---- Mesh leaves: BVH node and triangle records ----
+# Node: 8 words, lower xyz + escape (uint32 bits), upper xyz + MESH_TRIS word; the word is
+# first triangle << MESH_COUNT_BITS | count, count 0 for an inner node (its first child is
+# the next node). Triangle: 12 floats, sorted vertices a, b, c (xyz + pad), parity in word 3.
+MESH_NODE_FLOATS = 8
+TRIANGLE_FLOATS = 12
+MESH_COUNT_BITS = 4
+
+
+def mesh_tris(first, count):
+    return (first << MESH_COUNT_BITS) | count
+
+
+def mesh_tris_first(word):
+    return word >> MESH_COUNT_BITS
+
+
+def mesh_tris_count(word):
+    return word & ((1 << MESH_COUNT_BITS) - 1)
 
 
 # ---- State tables (the automaton reads them; the upload puts them on the device) ----

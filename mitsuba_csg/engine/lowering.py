@@ -22,6 +22,7 @@ import numpy as np
 from ..errors import ModelError
 from ..model.nodes import DIFFERENCE, INTERSECTION, UNION, Node, Operation
 from . import layout as K
+from . import mesh_bvh
 from .shapes import primitive_bounds
 
 KIND_CODE = {UNION: K.UNION, INTERSECTION: K.INTERSECTION, DIFFERENCE: K.DIFFERENCE}
@@ -49,8 +50,16 @@ class FlatTree:
     prim_lower: np.ndarray
     prim_upper: np.ndarray
     prim_material: list = field(default_factory=list)  # material name or None per primitive
-    planes: np.ndarray = None   # (Q, 4) canonical unit-normal planes of convex primitives
+    planes: np.ndarray = None   # (Q, 4) canonical unit-normal planes of convex primitives and mesh triangles
     plane_vertices: dict = field(default_factory=dict)  # plane start -> canonical vertices
+    # Mesh leaves (engine.mesh_bvh): triangles parallel to `planes` (zero rows for convex
+    # planes), and all meshes' BVH nodes; a mesh primitive's params are its root and end node.
+    triangles: np.ndarray = None    # (Q, 12)
+    mesh_lower: np.ndarray = None   # (K, 3) node boxes, canonical frame
+    mesh_upper: np.ndarray = None
+    mesh_escape: np.ndarray = None  # (K,) absolute node index after each subtree
+    mesh_first: np.ndarray = None   # (K,) leaf: first triangle, relative to the mesh's plane start
+    mesh_count: np.ndarray = None   # (K,) leaf: triangle count; 0: inner node
     root: int = 0
 
     @property
@@ -183,7 +192,8 @@ def primitive_tree(prims) -> FlatTree:
     plane_start = np.zeros(n, np.int64)
     plane_count = np.zeros(n, np.int64)
     plane_sets: dict[int, tuple[int, np.ndarray]] = {}   # id(planes array) -> (start, vertices)
-    plane_chunks, n_planes = [], 0
+    mesh_sets: dict[int, tuple[int, int, int]] = {}       # id(faces array) -> (plane start, root, end)
+    plane_chunks, triangle_chunks, bvhs, n_planes, n_mesh_nodes = [], [], [], 0, 0
     materials = []
     for i, (prim, matrix, material) in enumerate(prims):
         canon, prm, planes = prim.canonical()
@@ -191,20 +201,47 @@ def primitive_tree(prims) -> FlatTree:
         to_world[i] = matrix @ canon
         param[i] = prm
         materials.append(material)
-        if planes is not None:
+        if shape[i] == K.MESH:
+            key = id(prim.faces)
+            if key not in mesh_sets:
+                bvh = mesh_bvh.build(prim.vertices, prim.faces)
+                mesh_sets[key] = (n_planes, n_mesh_nodes, n_mesh_nodes + bvh.num_nodes)
+                plane_sets[key] = (n_planes, prim.vertices)
+                plane_chunks.append(bvh.planes)
+                triangle_chunks.append(bvh.triangles)
+                bvhs.append((n_mesh_nodes, bvh))
+                n_planes += len(bvh.planes)
+                n_mesh_nodes += bvh.num_nodes
+            plane_start[i], root, end = mesh_sets[key]
+            param[i] = (root, end)
+        elif planes is not None:
             key = id(planes)
             if key not in plane_sets:
                 plane_sets[key] = (n_planes, prim.vertices)
                 plane_chunks.append(planes)
+                triangle_chunks.append(np.zeros((len(planes), 12)))
                 n_planes += len(planes)
             plane_start[i] = plane_sets[key][0]
             plane_count[i] = len(planes)
     planes = np.vstack(plane_chunks) if plane_chunks else np.zeros((0, 4))
+    triangles = np.vstack(triangle_chunks) if triangle_chunks else np.zeros((0, 12))
     vertices = dict(plane_sets.values())
+    mesh = _mesh_nodes(bvhs)
     to_canonical = np.linalg.inv(to_world)[:, :3, :]
     lower, upper = primitive_bounds(shape, to_world, param, plane_start, vertices)
     return FlatTree(*_no_nodes(), shape, to_canonical, to_world, param, plane_start, plane_count, lower, upper,
-                    materials, planes=planes, plane_vertices=vertices)
+                    materials, planes=planes, plane_vertices=vertices, triangles=triangles, **mesh)
+
+
+def _mesh_nodes(bvhs) -> dict:
+    """All meshes' BVH nodes in one set of arrays (escape indices made absolute)."""
+    if not bvhs:
+        return dict(mesh_lower=np.zeros((0, 3)), mesh_upper=np.zeros((0, 3)), mesh_escape=np.zeros(0, np.int64),
+                    mesh_first=np.zeros(0, np.int64), mesh_count=np.zeros(0, np.int64))
+    return dict(mesh_lower=np.vstack([b.lower for _, b in bvhs]), mesh_upper=np.vstack([b.upper for _, b in bvhs]),
+                mesh_escape=np.concatenate([b.escape + offset for offset, b in bvhs]),
+                mesh_first=np.concatenate([b.first for _, b in bvhs]),
+                mesh_count=np.concatenate([b.count for _, b in bvhs]))
 
 
 def _no_nodes():

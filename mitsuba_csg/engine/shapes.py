@@ -7,7 +7,14 @@ Events are recomputed from the unchanged ray every time, so the same root gives 
 float bit for bit, and "strictly after" needs no epsilon and always makes progress.
 
 Faces: sphere 0; box 2*axis + (1 on the + side); cone 0 side, 1 bottom, 2 top; torus 0;
-convex polyhedron: the plane's index within the primitive.
+convex polyhedron: the plane's index within the primitive; mesh: the triangle's index in
+BVH order (its plane is plane start + face, as for a convex polyhedron).
+
+A mesh is not convex: its first crossing after t_start comes from a stackless walk of its
+BVH (`engine.mesh_bvh`) with a watertight ray/triangle test, and its class from the side
+the ray crosses from. Crossings within `skip` of t_start are the event at t_start seen
+again through a neighbouring triangle (an edge or vertex hit: float32 t differs by ulps
+between the triangles), so they are not events.
 
 `SHAPES` is the table of canonical shapes: for each, its interval along a ray (Dr.Jit),
 its surface function (Dr.Jit, detached or AD) and its world bounds under an affine map
@@ -20,7 +27,8 @@ from typing import Callable
 import drjit as dr
 import numpy as np
 
-from .layout import BOX, CONE, CONVEX, ENTER, EXIT, MAX_SLOPE, MISS, SPHERE, TORUS
+from . import layout as K
+from .layout import BOX, CONE, CONVEX, ENTER, EXIT, MAX_SLOPE, MESH, MISS, SPHERE, TORUS
 
 # Acceptance slack for cone side/cap candidates near the rim (canonical units).
 _RIM_SLACK = 1e-5
@@ -149,6 +157,96 @@ def _convex(b, o, d, param, plane_buf, start, count):
     return near, far, near_face, far_face, near_normal, far_normal
 
 
+# ---- Mesh: stackless BVH walk, watertight triangle test (Woop, Benthin and Wald 2013) ----
+
+def _pick(v, k):
+    return dr.select(k == 0, v.x, dr.select(k == 1, v.y, v.z))
+
+
+@dr.syntax
+def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
+    """(t, face, class, plane normal) of a mesh's first crossing after t_start + skip."""
+    triangles, nodes, skip = mesh
+    width = dr.width(t_start)
+    root = dr.reinterpret_array(b.UInt32, param[0])
+    end = dr.reinterpret_array(b.UInt32, param[1])
+    # The axis where |d| is largest becomes z; shear the others so the ray runs along z.
+    ad = dr.abs(d)
+    kz = dr.select((ad.x >= ad.y) & (ad.x >= ad.z), b.UInt32(0), dr.select(ad.y >= ad.z, b.UInt32(1), b.UInt32(2)))
+    kx = dr.select(kz == 2, b.UInt32(0), kz + 1)
+    ky = dr.select(kx == 2, b.UInt32(0), kx + 1)
+    swap = _pick(d, kz) < 0                        # keep the projected triangles' winding
+    kx, ky = dr.select(swap, ky, kx), dr.select(swap, kx, ky)
+    dz = _pick(d, kz)
+    sx, sy, sz = _pick(d, kx) / dz, _pick(d, ky) / dz, 1.0 / dz
+    inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
+
+    node = b.UInt32(root)
+    tri = dr.zeros(b.UInt32, width)
+    tri_end = dr.zeros(b.UInt32, width)
+    t = dr.full(b.Float, dr.inf, width)
+    face = dr.zeros(b.UInt32, width)
+    enter = dr.zeros(b.Bool, width)
+    while dr.hint((node != end) | (tri < tri_end), label="csg_mesh_bvh"):
+        # One triangle of the current leaf, or one node.
+        testing = tri < tri_end
+        row = (start + tri) * 3
+        va = dr.gather(b.Array4f, triangles, row, testing)
+        vb = dr.gather(b.Array4f, triangles, row + 1, testing)
+        vc = dr.gather(b.Array4f, triangles, row + 2, testing)
+        # Projected vertices relative to the origin, each computed the same way in every
+        # triangle that shares it.
+        az, bz, cz = _pick(va, kz) - _pick(o, kz), _pick(vb, kz) - _pick(o, kz), _pick(vc, kz) - _pick(o, kz)
+        ax = _pick(va, kx) - _pick(o, kx) - sx * az
+        ay = _pick(va, ky) - _pick(o, ky) - sy * az
+        bx = _pick(vb, kx) - _pick(o, kx) - sx * bz
+        by = _pick(vb, ky) - _pick(o, ky) - sy * bz
+        cx = _pick(vc, kx) - _pick(o, kx) - sx * cz
+        cy = _pick(vc, ky) - _pick(o, ky) - sy * cz
+        # Edge functions of the edges (a, b), (a, c), (b, c), lower vertex index first: a
+        # shared edge gives the same value, negated, in both of its triangles.
+        e_ab = ax * by - ay * bx
+        e_ac = ax * cy - ay * cx
+        e_bc = bx * cy - by * cx
+        odd = va.w != 0                            # the sorted order reverses the winding
+        u = dr.select(odd, e_bc, -e_bc)
+        v = dr.select(odd, -e_ac, e_ac)
+        w = dr.select(odd, e_ab, -e_ab)
+        inside = ((u >= 0) & (v >= 0) & (w >= 0)) | ((u <= 0) & (v <= 0) & (w <= 0))
+        det = u + v + w
+        t_tri = (u * az + v * bz + w * cz) * sz / det
+        # Neighbouring triangles' t for the same edge point differ like 1 / |cos|.
+        e1, e2 = b.Array3f(vb.x - va.x, vb.y - va.y, vb.z - va.z), b.Array3f(vc.x - va.x, vc.y - va.y, vc.z - va.z)
+        n = dr.cross(e1, e2)
+        cos = dr.abs(dr.dot(n, d)) * dr.rsqrt(dr.squared_norm(n) * dr.squared_norm(d))
+        t_min = t_start + skip * dr.minimum(dr.rcp(cos), 2.0**MAX_SLOPE)
+        take = testing & inside & (det != 0) & (t_tri > t_min) & (t_tri < t)
+        t = dr.select(take, t_tri, t)
+        face = dr.select(take, tri, face)
+        enter = dr.select(take, det > 0, enter)
+        tri = dr.select(testing, tri + 1, tri)
+
+        stepping = ~testing & (node != end)
+        lo = dr.gather(b.Array4f, nodes, node * 2, stepping)
+        hi = dr.gather(b.Array4f, nodes, node * 2 + 1, stepping)
+        t1 = (b.Array3f(lo.x, lo.y, lo.z) - o) * inv_d
+        t2 = (b.Array3f(hi.x, hi.y, hi.z) - o) * inv_d
+        near = dr.max(dr.minimum(t1, t2))
+        far = dr.min(dr.maximum(t1, t2))
+        hit = stepping & (near <= far) & (far > t_start) & (near <= t)
+        word = dr.reinterpret_array(b.UInt32, hi.w)
+        count = K.mesh_tris_count(word)
+        leaf = hit & (count > 0)
+        tri = dr.select(leaf, K.mesh_tris_first(word), tri)
+        tri_end = dr.select(leaf, K.mesh_tris_first(word) + count, tri_end)
+        escape = dr.reinterpret_array(b.UInt32, lo.w)
+        node = dr.select(stepping, dr.select(hit & (count == 0), node + 1, escape), node)
+    found = dr.isfinite(t)
+    plane = dr.gather(b.Array4f, plane_buf, start + face, found)
+    cls = dr.select(found, dr.select(enter, b.UInt32(ENTER), b.UInt32(EXIT)), b.UInt32(MISS))
+    return t, face, cls, b.Array3f(plane.x, plane.y, plane.z)
+
+
 # ---- Torus: root isolation by derivatives, then safeguarded Newton on each bracket ----
 
 def _poly(coeffs, x):
@@ -224,11 +322,13 @@ def _torus_events(b, o, d, param):
     return events, oks
 
 
-def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o_world, d_world, t_start):
+def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o_world, d_world, t_start,
+                mesh=None):
     """(t, face, class, slope) of the first boundary event of one primitive after t_start (per lane).
 
     `slope` is the event's SLOPE exponent (`engine.layout`): how steeply the ray meets the
-    surface there, which scales how far in t float32 rounding can move the event.
+    surface there, which scales how far in t float32 rounding can move the event. `mesh` is
+    (triangle buffer, mesh node buffer, skip) for mesh leaves (see the module docstring).
     """
     o = b.Array3f(dr.dot(xf_rows[0], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)),
                   dr.dot(xf_rows[1], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)),
@@ -237,7 +337,7 @@ def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o
                   dr.dot(b.Array3f(xf_rows[1].x, xf_rows[1].y, xf_rows[1].z), d_world),
                   dr.dot(b.Array3f(xf_rows[2].x, xf_rows[2].y, xf_rows[2].z), d_world))
     t, face, cls, plane_normal = _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d,
-                                                    t_start)
+                                                    t_start, mesh)
     plane = b.Array4f(plane_normal.x, plane_normal.y, plane_normal.z, 0.0)
     _, grad = surface_function(b.module, shape, face, param, plane, o + t * d)
     # The world normal is M^T grad for the rows M of world -> canonical; grad . d is the same
@@ -256,7 +356,7 @@ def _slope_exponent(b, cos):
 
 
 @dr.syntax
-def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d, t_start):
+def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d, t_start, mesh):
     width = dr.width(t_start)
     near = dr.full(b.Float, dr.inf, width)
     far = dr.full(b.Float, -dr.inf, width)
@@ -273,6 +373,10 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
     if shape == CONVEX:
         near, far, near_face, far_face, near_normal, far_normal = _convex(b, o, d, param, plane_buf, plane_start,
                                                                           plane_count)
+    if dr.hint(mesh is not None, mode="scalar"):
+        if shape == MESH:
+            t, face, cls, near_normal = _mesh(b, o, d, param, plane_buf, plane_start, mesh, t_start)
+            far_normal = b.Array3f(near_normal)
     if shape == TORUS:
         # Pick the first root after t_start; its parity among the roots is its class.
         events, oks = _torus_events(b, o, d, param)
@@ -284,7 +388,7 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
             cls = dr.select(take, seen & 1, cls)
             found |= take
             seen += dr.select(ok, 1, 0)
-    else:
+    elif shape != MESH:
         t, face, cls = _interval_event(b, near, far, near_face, far_face, t_start)
     return t, face, cls, dr.select(cls == ENTER, near_normal, far_normal)
 
@@ -404,6 +508,7 @@ SHAPES = (
     Shape(CONE, _cone, _cone_surface, _cone_bounds),
     Shape(TORUS, None, _torus_surface, _torus_bounds),     # four roots: _torus_events
     Shape(CONVEX, None, _convex_surface, _convex_bounds),  # also the faces' normals: _convex
+    Shape(MESH, None, _convex_surface, _convex_bounds),    # a triangle's plane; bounds of the vertices
 )
 _INTERVAL_SHAPES = tuple(kind for kind in SHAPES if kind.interval is not None)
 

@@ -26,6 +26,11 @@ class Format:
     save_options: tuple[str, ...] = ()
 
 
+def _load_mesh(path, **options):
+    from .mesh_import import load as load_mesh
+    return load_mesh(path, **options)
+
+
 def _save_mesh(model, path, **options):
     from .mesh_export import save_mesh       # manifold3d is only needed for meshes
     return save_mesh(model, path, **options)
@@ -35,9 +40,9 @@ FORMATS = {
     ".json": Format("mitsuba-csg native JSON", native_json.load, (), native_json.save, ("materials",)),
     ".csg": Format("OpenSCAD .csg", openscad.load, ("on_unsupported",)),
     ".gdml": Format("Geant4 GDML", gdml.load, ("solid", "depth", "show_world", "on_unsupported")),
-    ".ply": Format("PLY mesh", None, (), _save_mesh, ("segments",)),
-    ".obj": Format("Wavefront OBJ mesh", None, (), _save_mesh, ("segments",)),
-    ".stl": Format("binary STL mesh", None, (), _save_mesh, ("segments",)),
+    ".ply": Format("PLY mesh", _load_mesh, (), _save_mesh, ("segments",)),
+    ".obj": Format("Wavefront OBJ mesh", _load_mesh, (), _save_mesh, ("segments",)),
+    ".stl": Format("STL mesh", _load_mesh, (), _save_mesh, ("segments",)),
 }
 MODEL_SUFFIXES = tuple(s for s, f in FORMATS.items() if f.load is not None)
 SAVE_SUFFIXES = tuple(s for s, f in FORMATS.items() if f.save is not None)
@@ -51,7 +56,8 @@ def _check_options(path, fmt: Format, given: dict, accepted: tuple[str, ...], ve
 
 
 def load(path, **options):
-    """Load a model from `path`; the suffix picks the format (`.json`, `.csg`, `.gdml`).
+    """Load a model from `path`; the suffix picks the format (`.json`, `.csg`, `.gdml`, and
+    the closed triangle meshes `.stl`, `.ply`, `.obj` as one `csg.Mesh` leaf).
 
     Options go to the format's reader: `on_unsupported="skip"` (OpenSCAD, GDML) and, for
     GDML, `solid="name"` (one solid in its own frame), `depth=k`, `show_world=True`.

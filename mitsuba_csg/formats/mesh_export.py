@@ -28,6 +28,7 @@ import manifold3d as m3
 
 from ..errors import ModelError
 from ..model import primitives as P
+from ..model.mesh import Mesh
 from ..model.nodes import DIFFERENCE, INTERSECTION, UNION, Node, Operation
 
 MESH_FORMATS = (".ply", ".obj", ".stl")
@@ -165,6 +166,8 @@ class _ShapeCache:
         key = _mesh_key(prim)
         if isinstance(prim, P.ConvexPolyhedron) and not isinstance(prim, P.Prism):
             self.keep.append(prim.vertices)
+        if isinstance(prim, Mesh):
+            self.keep.append(prim.faces)
         mesh = self.cache.get(key)
         if mesh is None:
             mesh = _primitive_mesh(prim, self.segments)
@@ -176,6 +179,8 @@ class _ShapeCache:
 
 
 def _mesh_key(prim: Node) -> tuple:
+    if isinstance(prim, Mesh):
+        return ("mesh", id(prim.faces))
     if isinstance(prim, P.Prism):
         return ("prism", prim.sides, prim.apothem, prim.height)
     if isinstance(prim, P.ConvexPolyhedron):
@@ -193,6 +198,9 @@ def _mesh_key(prim: Node) -> tuple:
 
 def _primitive_mesh(prim: Node, n: int) -> m3.Manifold:
     """The mesh of one primitive centred on its origin, z its axis (full lengths, as documented)."""
+    if isinstance(prim, Mesh):
+        return m3.Manifold(m3.Mesh(vert_properties=np.asarray(prim.vertices, np.float32),
+                                   tri_verts=np.asarray(prim.faces, np.uint32)))
     if isinstance(prim, P.Prism):
         # A regular polygon with apothem a has its vertices at a / cos(pi / sides); a side faces +x.
         k = np.arange(prim.sides)

@@ -28,6 +28,7 @@ import numpy as np
 from ..errors import ModelError
 from ..model import transform as tf
 from ..model import values
+from ..model.mesh import Mesh
 from ..model.nodes import OPERATIONS, Node, Operation
 from ..model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
 from .reading import FormatError, read_model_bytes
@@ -228,6 +229,22 @@ def _sides(value, source, path):
     return _integer(value, 3, 1000, source, path)
 
 
+def _vertices(value, source, path):
+    _list(value, source, path, "a list of vertices [x, y, z]")
+    return [_numbers(row, 3, source, (path, i)) for i, row in enumerate(value)]
+
+
+def _faces(value, source, path):
+    _list(value, source, path, "a list of triangles [i, j, k] (vertex indices)")
+    rows = []
+    for i, row in enumerate(value):
+        _list(row, source, (path, i), "a triangle [i, j, k]")
+        if len(row) != 3:
+            _fail(source, (path, i), f"expected 3 vertex indices, got {len(row)}")
+        rows.append([_integer(v, 0, 2**31 - 1, source, ((path, i), k)) for k, v in enumerate(row)])
+    return rows
+
+
 # type name -> (class, {parameter: check}) in the order files list them
 PRIMITIVES = {
     "sphere": (Sphere, {"radius": _positive}),
@@ -237,6 +254,7 @@ PRIMITIVES = {
     "torus": (Torus, {"major_radius": _positive, "minor_radius": _positive}),
     "prism": (Prism, {"sides": _sides, "apothem": _positive, "height": _positive}),
     "convex_polyhedron": (ConvexPolyhedron, {"planes": _planes}),
+    "mesh": (Mesh, {"vertices": _vertices, "faces": _faces}),
 }
 NODE_TYPES = (*PRIMITIVES, *OPERATIONS)
 _COMMON_KEYS = ("transform", "material")
@@ -261,6 +279,8 @@ def _primitive_params(prim) -> tuple[str, dict]:
             return "prism", {"sides": prim.sides, "apothem": prim.apothem, "height": prim.height}
         if cls is ConvexPolyhedron:
             return "convex_polyhedron", {"planes": prim.planes.tolist()}
+        if cls is Mesh:
+            return "mesh", {"vertices": prim.vertices.tolist(), "faces": prim.faces.tolist()}
     raise ModelError(f"native format: cannot write a {type(prim).__name__} (not a known primitive or operation)")
 
 

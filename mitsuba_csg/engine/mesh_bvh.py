@@ -1,0 +1,85 @@
+"""The BVH of a mesh leaf, built once in numpy, and its triangles as the kernel reads them.
+
+Nodes are stored in depth-first order with escape indices (the node after a subtree), so the
+kernel traverses them without a stack: on a box hit go to the next node, otherwise to the
+escape. Each triangle is stored with its vertices sorted by vertex index, so that the edge
+functions of an edge shared by two triangles are computed from the same operands in the same
+order, hence equal and opposite bit for bit (the watertight test, `engine.shapes`): a ray
+through an edge or a vertex is never missed. A parity flag says whether the sorted order
+reverses the triangle's orientation.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+LEAF_SIZE = 4           # triangles per BVH leaf at most (the kernel's count field has 4 bits)
+
+
+class MeshBVH:
+    """One mesh's BVH in depth-first order and its triangles in BVH order (float64)."""
+
+    __slots__ = ("lower", "upper", "escape", "first", "count", "triangles", "planes")
+
+    def __init__(self, lower, upper, escape, first, count, triangles, planes):
+        self.lower, self.upper = lower, upper      # (K, 3) node boxes
+        self.escape = escape                       # (K,) the node after each subtree (K: the end)
+        self.first, self.count = first, count      # leaf triangle range in BVH order; count 0: inner node
+        self.triangles = triangles                 # (T, 12): sorted vertices a, b, c as xyz + pad, parity at 3
+        self.planes = planes                       # (T, 4) outward unit normal and offset per triangle
+
+    @property
+    def num_nodes(self) -> int:
+        return len(self.escape)
+
+
+def build(vertices: np.ndarray, faces: np.ndarray) -> MeshBVH:
+    """Median-split BVH over triangle centroids along the longest centroid axis."""
+    tri = vertices[faces]                                  # (T, 3, 3)
+    centroid = tri.mean(axis=1)
+    t_lower, t_upper = tri.min(axis=1), tri.max(axis=1)
+    order = np.arange(len(faces))
+    lower, upper, escape, first, count = [], [], [], [], []
+
+    def emit(start: int, end: int) -> None:
+        index = len(escape)
+        ids = order[start:end]
+        lower.append(t_lower[ids].min(axis=0))
+        upper.append(t_upper[ids].max(axis=0))
+        escape.append(0)
+        if end - start <= LEAF_SIZE:
+            first.append(start)
+            count.append(end - start)
+        else:
+            first.append(0)
+            count.append(0)
+            c = centroid[ids]
+            axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
+            mid = (end - start) // 2
+            order[start:end] = ids[np.argpartition(c[:, axis], mid)]
+            emit(start, start + mid)
+            emit(start + mid, end)
+        escape[index] = len(escape)
+
+    emit(0, len(faces))
+    faces = faces[order]
+    # Sorted vertex order and its parity against the triangle's own (cyclic) order.
+    sort = np.argsort(faces, axis=1)
+    sorted_faces = np.take_along_axis(faces, sort, axis=1)
+    parity = _odd(sort)
+    triangles = np.zeros((len(faces), 12))
+    for k in range(3):
+        triangles[:, 4 * k:4 * k + 3] = vertices[sorted_faces[:, k]]
+    triangles[:, 3] = parity
+    a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    planes = np.column_stack([normal, np.einsum("ij,ij->i", normal, a)])
+    return MeshBVH(np.array(lower), np.array(upper), np.array(escape, np.int64), np.array(first, np.int64),
+                   np.array(count, np.int64), triangles, planes)
+
+
+def _odd(permutation: np.ndarray) -> np.ndarray:
+    """1.0 where a permutation of (0, 1, 2) (rows) is odd."""
+    p = permutation
+    inversions = (p[:, 0] > p[:, 1]).astype(int) + (p[:, 0] > p[:, 2]) + (p[:, 1] > p[:, 2])
+    return (inversions % 2).astype(np.float64)

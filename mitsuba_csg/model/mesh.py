@@ -1,0 +1,113 @@
+"""Closed triangle meshes as CSG leaves.
+
+A `Mesh` is any closed, consistently oriented triangle surface with volume: the automaton
+only needs a leaf's next boundary crossing and whether it enters or exits, which a
+watertight ray/triangle test over the mesh's own BVH gives (`engine.mesh_bvh`,
+`engine.shapes`). Validation happens here, once, in float64.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from ..errors import ModelError
+from . import transform as tf
+from .nodes import Primitive
+
+MAX_TRIANGLES = 1 << 24        # the hit info word keeps 24 bits of face index
+MAX_COORDINATE = 1e15          # float32 products of coordinates stay finite below this
+
+
+class MeshOrientationWarning(UserWarning):
+    """An inside-out mesh was flipped."""
+
+
+def _checked(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4:
+        raise ModelError(f"{name}.vertices: expected an (N, 3) array with N >= 4, got shape {v.shape}")
+    if not np.all(np.isfinite(v)):
+        bad = int(np.flatnonzero(~np.isfinite(v).all(1))[0])
+        raise ModelError(f"{name}.vertices: vertex {bad} has NaN or infinite coordinates")
+    if np.abs(v).max() > MAX_COORDINATE:
+        bad = int(np.argmax(np.abs(v).max(axis=1)))
+        raise ModelError(f"{name}.vertices: vertex {bad} lies {np.abs(v[bad]).max():.3g} from the origin; "
+                         f"coordinates beyond {MAX_COORDINATE:g} cannot be traced in float32")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) < 4:
+        raise ModelError(f"{name}.faces: expected an (M, 3) array of vertex indices with M >= 4, got shape {f.shape}")
+    if not np.issubdtype(f.dtype, np.integer):
+        if not np.all(np.isfinite(f)) or np.any(f != np.round(f)):
+            raise ModelError(f"{name}.faces: vertex indices must be integers")
+    f = f.astype(np.int64)
+    if f.min() < 0 or f.max() >= len(v):
+        bad = int(np.flatnonzero((f < 0).any(1) | (f >= len(v)).any(1))[0])
+        raise ModelError(f"{name}.faces: triangle {bad} refers to vertex {f[bad].tolist()}, "
+                         f"but there are {len(v)} vertices")
+    # Degenerate triangles (repeated or collinear vertices) bound nothing: drop them.
+    area2 = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    f = f[area2 > 1e-14 * max(1.0, float(np.abs(v).max())) ** 2]
+    if len(f) > MAX_TRIANGLES:
+        raise ModelError(f"{name}: {len(f)} triangles; a mesh leaf holds at most {MAX_TRIANGLES}")
+    if len(f) < 4:
+        raise ModelError(f"{name}: fewer than 4 non-degenerate triangles; a closed solid needs at least 4")
+    _check_closed(f, name)
+    volume = float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0)
+    scale = float(np.ptp(v, axis=0).max()) ** 3
+    if abs(volume) <= 1e-12 * scale:
+        raise ModelError(f"{name}: the mesh encloses no volume")
+    if volume < 0:
+        warnings.warn(f"{name}: the triangles are oriented inward (negative volume); flipped them",
+                      MeshOrientationWarning, stacklevel=4)
+        f = f[:, ::-1].copy()
+    return v, f
+
+
+def _check_closed(f, name: str) -> None:
+    """Every directed edge once and its reverse once: closed, manifold along edges, and
+    consistently oriented (an inconsistent pair repeats a directed edge)."""
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    n = int(f.max()) + 1
+    key = directed[:, 0] * n + directed[:, 1]
+    unique, counts = np.unique(key, return_counts=True)
+    if np.any(counts > 1):
+        a, b = divmod(int(unique[np.argmax(counts > 1)]), n)
+        raise ModelError(f"{name}: edge ({a}, {b}) is used twice in the same direction: the triangles are not "
+                         "consistently oriented, or more than two meet at the edge")
+    reverse = directed[:, 1] * n + directed[:, 0]
+    missing = ~np.isin(reverse, unique)
+    if np.any(missing):
+        a, b = directed[np.argmax(missing)]
+        raise ModelError(f"{name}: edge ({int(a)}, {int(b)}) has no opposite triangle: the mesh is not closed")
+
+
+class Mesh(Primitive):
+    """A closed, consistently oriented triangle mesh (outward normals by the right-hand rule).
+
+    `vertices` is (N, 3), `faces` (M, 3) vertex indices. Degenerate triangles are dropped; a
+    mesh oriented inward is flipped with a `MeshOrientationWarning`; an open, non-manifold or
+    inconsistently oriented mesh, or one without volume, is a `ModelError` naming the edge.
+    """
+
+    __slots__ = ("vertices", "faces")
+    canonical_shape = "mesh"
+
+    def __init__(self, vertices, faces, *, material: str | None = None):
+        super().__init__(material=material)
+        self.vertices, self.faces = _checked(vertices, faces, "Mesh")
+        self.vertices.setflags(write=False)
+        self.faces.setflags(write=False)
+
+    @classmethod
+    def from_manifold(cls, manifold, *, material: str | None = None) -> "Mesh":
+        """The triangles of a `manifold3d.Manifold` (its first three vertex properties)."""
+        mesh = manifold.to_mesh()
+        return cls(np.asarray(mesh.vert_properties)[:, :3], np.asarray(mesh.tri_verts), material=material)
+
+    def canonical(self):
+        # The mesh is its own canonical solid; the kernel reads its triangles and BVH.
+        return tf.IDENTITY, (0.0, 0.0), None
+
+    def __repr__(self):
+        return f"Mesh(<{len(self.vertices)} vertices, {len(self.faces)} triangles>){self._transform_repr()}"
