@@ -139,16 +139,18 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
 
 def _mesh_node_records(flat: FlatTree) -> np.ndarray:
     """(K, 8) float32 mesh BVH node records (one dummy record when there are no meshes)."""
-    if flat.mesh_escape is None or not len(flat.mesh_escape):
+    if flat.mesh_right is None or not len(flat.mesh_right):
         return np.zeros((1, K.MESH_NODE_FLOATS), np.float32)
     # Pad outwards as for the tree's boxes, so float32 rounding never culls a triangle.
     extent = np.maximum(np.abs(flat.mesh_lower), np.abs(flat.mesh_upper))
     pad = 1e-5 * (flat.mesh_upper - flat.mesh_lower) + 1e-6 * extent + 1e-30
-    record = np.zeros((len(flat.mesh_escape), K.MESH_NODE_FLOATS), np.float32)
+    record = np.zeros((len(flat.mesh_right), K.MESH_NODE_FLOATS), np.float32)
     record[:, 0:3] = flat.mesh_lower - pad
     record[:, 4:7] = flat.mesh_upper + pad
-    record[:, 3] = flat.mesh_escape.astype(np.uint32).view(np.float32)
-    record[:, 7] = K.mesh_tris(flat.mesh_first, flat.mesh_count).astype(np.uint32).view(np.float32)
+    record[:, 3] = flat.mesh_right.astype(np.uint32).view(np.float32)
+    # An inner node (count 0) keeps its split axis where a leaf keeps its first triangle.
+    first = np.where(flat.mesh_count > 0, flat.mesh_first, flat.mesh_axis)
+    record[:, 7] = K.mesh_tris(first, flat.mesh_count).astype(np.uint32).view(np.float32)
     return record
 
 

@@ -29,8 +29,8 @@ Hit info word (one per returned hit)::
 Primitive record: 16 floats per primitive (a power of two, so one gather fetches it)::
 
     0-11   rows of the world -> canonical affine map
-    12-13  two shape parameters (cone radii, torus minor radius); a mesh: its BVH's root and
-           end node (uint32 bits)
+    12-13  two shape parameters (cone radii, torus minor radius); a mesh: its BVH's root node
+           (uint32 bits)
     14     first plane of a convex primitive or mesh (uint32 bits; a mesh's triangle k is
            plane and triangle row start + k)
     15     plane count | shape code << 16 (uint32 bits)
@@ -146,9 +146,10 @@ def record_plane_count(word):
 
 
 # ---- Mesh leaves: BVH node and triangle records ----
-# Node: 8 words, lower xyz + escape (uint32 bits), upper xyz + MESH_TRIS word; the word is
-# first triangle << MESH_COUNT_BITS | count, count 0 for an inner node (its first child is
-# the next node). Triangle: 12 floats, sorted vertices a, b, c (xyz + pad), parity in word 3.
+# Node: 8 words, lower xyz + right child (uint32 bits; inner nodes, whose left child is the
+# next node), upper xyz + MESH_TRIS word: first triangle << MESH_COUNT_BITS | count for a
+# leaf, split axis << MESH_COUNT_BITS (count 0) for an inner node.
+# Triangle: 12 floats, sorted vertices a, b, c (xyz + pad), parity in word 3.
 MESH_NODE_FLOATS = 8
 TRIANGLE_FLOATS = 12
 MESH_COUNT_BITS = 4

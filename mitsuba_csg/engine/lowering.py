@@ -53,11 +53,12 @@ class FlatTree:
     planes: np.ndarray = None   # (Q, 4) canonical unit-normal planes of convex primitives and mesh triangles
     plane_vertices: dict = field(default_factory=dict)  # plane start -> canonical vertices
     # Mesh leaves (engine.mesh_bvh): triangles parallel to `planes` (zero rows for convex
-    # planes), and all meshes' BVH nodes; a mesh primitive's params are its root and end node.
+    # planes), and all meshes' BVH nodes; a mesh primitive's params are its root node (twice).
     triangles: np.ndarray = None    # (Q, 12)
     mesh_lower: np.ndarray = None   # (K, 3) node boxes, canonical frame
     mesh_upper: np.ndarray = None
-    mesh_escape: np.ndarray = None  # (K,) absolute node index after each subtree
+    mesh_right: np.ndarray = None   # (K,) inner node: absolute index of the right child (the left is next)
+    mesh_axis: np.ndarray = None    # (K,) inner node: split axis
     mesh_first: np.ndarray = None   # (K,) leaf: first triangle, relative to the mesh's plane start
     mesh_count: np.ndarray = None   # (K,) leaf: triangle count; 0: inner node
     root: int = 0
@@ -212,8 +213,8 @@ def primitive_tree(prims) -> FlatTree:
                 bvhs.append((n_mesh_nodes, bvh))
                 n_planes += len(bvh.planes)
                 n_mesh_nodes += bvh.num_nodes
-            plane_start[i], root, end = mesh_sets[key]
-            param[i] = (root, end)
+            plane_start[i], root, _ = mesh_sets[key]
+            param[i] = (root, root)
         elif planes is not None:
             key = id(planes)
             if key not in plane_sets:
@@ -234,12 +235,14 @@ def primitive_tree(prims) -> FlatTree:
 
 
 def _mesh_nodes(bvhs) -> dict:
-    """All meshes' BVH nodes in one set of arrays (escape indices made absolute)."""
+    """All meshes' BVH nodes in one set of arrays (child indices made absolute)."""
     if not bvhs:
-        return dict(mesh_lower=np.zeros((0, 3)), mesh_upper=np.zeros((0, 3)), mesh_escape=np.zeros(0, np.int64),
-                    mesh_first=np.zeros(0, np.int64), mesh_count=np.zeros(0, np.int64))
+        empty = np.zeros(0, np.int64)
+        return dict(mesh_lower=np.zeros((0, 3)), mesh_upper=np.zeros((0, 3)), mesh_right=empty, mesh_axis=empty,
+                    mesh_first=empty, mesh_count=empty)
     return dict(mesh_lower=np.vstack([b.lower for _, b in bvhs]), mesh_upper=np.vstack([b.upper for _, b in bvhs]),
-                mesh_escape=np.concatenate([b.escape + offset for offset, b in bvhs]),
+                mesh_right=np.concatenate([b.right + offset for offset, b in bvhs]),
+                mesh_axis=np.concatenate([b.axis for _, b in bvhs]),
                 mesh_first=np.concatenate([b.first for _, b in bvhs]),
                 mesh_count=np.concatenate([b.count for _, b in bvhs]))
 

@@ -1,8 +1,9 @@
 """The BVH of a mesh leaf, built once in numpy, and its triangles as the kernel reads them.
 
-Nodes are stored in depth-first order with escape indices (the node after a subtree), so the
-kernel traverses them without a stack: on a box hit go to the next node, otherwise to the
-escape. Each triangle is stored with its vertices sorted by vertex index, so that the edge
+Nodes are stored in depth-first order (an inner node's left child is the next node) with the
+index of the right child and the split axis, so the kernel visits the child nearer along
+the ray first and keeps the other on a small per-lane stack: the nearest crossing found
+early culls the boxes behind it. Each triangle is stored with its vertices sorted by vertex index, so that the edge
 functions of an edge shared by two triangles are computed from the same operands in the same
 order, hence equal and opposite bit for bit (the watertight test, `engine.shapes`): a ray
 through an edge or a vertex is never missed. A parity flag says whether the sorted order
@@ -13,23 +14,24 @@ from __future__ import annotations
 import numpy as np
 
 LEAF_SIZE = 4           # triangles per BVH leaf at most (the kernel's count field has 4 bits)
+STACK_SIZE = 32         # the kernel's per-lane stack: deeper than any BVH built here
 
 
 class MeshBVH:
     """One mesh's BVH in depth-first order and its triangles in BVH order (float64)."""
 
-    __slots__ = ("lower", "upper", "escape", "first", "count", "triangles", "planes")
+    __slots__ = ("lower", "upper", "right", "axis", "first", "count", "triangles", "planes")
 
-    def __init__(self, lower, upper, escape, first, count, triangles, planes):
+    def __init__(self, lower, upper, right, axis, first, count, triangles, planes):
         self.lower, self.upper = lower, upper      # (K, 3) node boxes
-        self.escape = escape                       # (K,) the node after each subtree (K: the end)
+        self.right, self.axis = right, axis        # inner nodes: right child (the left is the next node), split axis
         self.first, self.count = first, count      # leaf triangle range in BVH order; count 0: inner node
         self.triangles = triangles                 # (T, 12): sorted vertices a, b, c as xyz + pad, parity at 3
         self.planes = planes                       # (T, 4) outward unit normal and offset per triangle
 
     @property
     def num_nodes(self) -> int:
-        return len(self.escape)
+        return len(self.right)
 
 
 def build(vertices: np.ndarray, faces: np.ndarray) -> MeshBVH:
@@ -38,29 +40,33 @@ def build(vertices: np.ndarray, faces: np.ndarray) -> MeshBVH:
     centroid = tri.mean(axis=1)
     t_lower, t_upper = tri.min(axis=1), tri.max(axis=1)
     order = np.arange(len(faces))
-    lower, upper, escape, first, count = [], [], [], [], []
+    lower, upper, right, split, first, count = [], [], [], [], [], []
 
-    def emit(start: int, end: int) -> None:
-        index = len(escape)
+    def emit(start: int, end: int, depth: int) -> None:
+        index = len(right)
         ids = order[start:end]
         lower.append(t_lower[ids].min(axis=0))
         upper.append(t_upper[ids].max(axis=0))
-        escape.append(0)
+        right.append(0)
         if end - start <= LEAF_SIZE:
+            split.append(0)
             first.append(start)
             count.append(end - start)
         else:
-            first.append(0)
-            count.append(0)
+            if depth >= STACK_SIZE - 1:
+                raise ValueError("mesh BVH deeper than the kernel's stack")
             c = centroid[ids]
             axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
+            split.append(axis)
+            first.append(0)
+            count.append(0)
             mid = (end - start) // 2
             order[start:end] = ids[np.argpartition(c[:, axis], mid)]
-            emit(start, start + mid)
-            emit(start + mid, end)
-        escape[index] = len(escape)
+            emit(start, start + mid, depth + 1)
+            right[index] = len(right)
+            emit(start + mid, end, depth + 1)
 
-    emit(0, len(faces))
+    emit(0, len(faces), 0)
     faces = faces[order]
     # Sorted vertex order and its parity against the triangle's own (cyclic) order.
     sort = np.argsort(faces, axis=1)
@@ -74,8 +80,8 @@ def build(vertices: np.ndarray, faces: np.ndarray) -> MeshBVH:
     normal = np.cross(b - a, c - a)
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     planes = np.column_stack([normal, np.einsum("ij,ij->i", normal, a)])
-    return MeshBVH(np.array(lower), np.array(upper), np.array(escape, np.int64), np.array(first, np.int64),
-                   np.array(count, np.int64), triangles, planes)
+    return MeshBVH(np.array(lower), np.array(upper), np.array(right, np.int64), np.array(split, np.int64),
+                   np.array(first, np.int64), np.array(count, np.int64), triangles, planes)
 
 
 def _odd(permutation: np.ndarray) -> np.ndarray:

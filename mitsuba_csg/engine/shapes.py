@@ -28,6 +28,7 @@ import drjit as dr
 import numpy as np
 
 from . import layout as K
+from . import mesh_bvh
 from .layout import BOX, CONE, CONVEX, ENTER, EXIT, MAX_SLOPE, MESH, MISS, SPHERE, TORUS
 
 # Acceptance slack for cone side/cap candidates near the rim (canonical units).
@@ -159,6 +160,9 @@ def _convex(b, o, d, param, plane_buf, start, count):
 
 # ---- Mesh: stackless BVH walk, watertight triangle test (Woop, Benthin and Wald 2013) ----
 
+_NO_NODE = 0xFFFFFFFF
+
+
 def _pick(v, k):
     return dr.select(k == 0, v.x, dr.select(k == 1, v.y, v.z))
 
@@ -169,7 +173,6 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
     triangles, nodes, skip = mesh
     width = dr.width(t_start)
     root = dr.reinterpret_array(b.UInt32, param[0])
-    end = dr.reinterpret_array(b.UInt32, param[1])
     # The axis where |d| is largest becomes z; shear the others so the ray runs along z.
     ad = dr.abs(d)
     kz = dr.select((ad.x >= ad.y) & (ad.x >= ad.z), b.UInt32(0), dr.select(ad.y >= ad.z, b.UInt32(1), b.UInt32(2)))
@@ -181,13 +184,15 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
     sx, sy, sz = _pick(d, kx) / dz, _pick(d, ky) / dz, 1.0 / dz
     inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
 
-    node = b.UInt32(root)
+    node = b.UInt32(root)                          # next node to visit, or NO_NODE
+    stack = dr.alloc_local(b.UInt32, mesh_bvh.STACK_SIZE)    # far children still to visit
+    sp = dr.zeros(b.UInt32, width)
     tri = dr.zeros(b.UInt32, width)
     tri_end = dr.zeros(b.UInt32, width)
     t = dr.full(b.Float, dr.inf, width)
     face = dr.zeros(b.UInt32, width)
     enter = dr.zeros(b.Bool, width)
-    while dr.hint((node != end) | (tri < tri_end), label="csg_mesh_bvh"):
+    while dr.hint((node != _NO_NODE) | (tri < tri_end), label="csg_mesh_bvh"):
         # One triangle of the current leaf, or one node.
         testing = tri < tri_end
         row = (start + tri) * 3
@@ -226,7 +231,9 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
         enter = dr.select(take, det > 0, enter)
         tri = dr.select(testing, tri + 1, tri)
 
-        stepping = ~testing & (node != end)
+        # A node: on a box hit, a leaf's triangles come next; an inner node's child nearer
+        # along its split axis is visited first and the other pushed. Otherwise pop.
+        stepping = ~testing & (node != _NO_NODE)
         lo = dr.gather(b.Array4f, nodes, node * 2, stepping)
         hi = dr.gather(b.Array4f, nodes, node * 2 + 1, stepping)
         t1 = (b.Array3f(lo.x, lo.y, lo.z) - o) * inv_d
@@ -237,10 +244,18 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
         word = dr.reinterpret_array(b.UInt32, hi.w)
         count = K.mesh_tris_count(word)
         leaf = hit & (count > 0)
+        inner = hit & (count == 0)
         tri = dr.select(leaf, K.mesh_tris_first(word), tri)
         tri_end = dr.select(leaf, K.mesh_tris_first(word) + count, tri_end)
-        escape = dr.reinterpret_array(b.UInt32, lo.w)
-        node = dr.select(stepping, dr.select(hit & (count == 0), node + 1, escape), node)
+        right = dr.reinterpret_array(b.UInt32, lo.w)
+        right_first = _pick(d, K.mesh_tris_first(word)) < 0
+        stack.write(dr.select(right_first, node + 1, right), sp, inner)
+        sp = dr.select(inner, sp + 1, sp)
+        pop = stepping & ~inner & (sp > 0)
+        popped = stack.read(dr.select(pop, sp - 1, 0), pop)    # an index in range on every lane
+        sp = dr.select(pop, sp - 1, sp)
+        node = dr.select(inner, dr.select(right_first, right, node + 1),
+                         dr.select(pop, popped, dr.select(stepping, _NO_NODE, node)))
     found = dr.isfinite(t)
     plane = dr.gather(b.Array4f, plane_buf, start + face, found)
     cls = dr.select(found, dr.select(enter, b.UInt32(ENTER), b.UInt32(EXIT)), b.UInt32(MISS))
