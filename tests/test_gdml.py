@@ -357,7 +357,11 @@ def test_bad_files_each_raise_one_clear_error(tmp_path):
                   '<volume name="b"><solidref ref="Small"/><physvol><volumeref ref="a"/></physvol></volume>', BAR),
             "placement cycle")
     _expect(doc('<blob name="S" r="1"/>'), r"unknown solid <blob>", solid="S")
-    _expect(doc('<tessellated name="S"/>'), r"<tessellated name=\"S\">.*cannot be represented", solid="S")
+    _expect(doc('<paraboloid name="S" rlo="1" rhi="2" dz="1"/>'), r"<paraboloid name=\"S\">.*cannot be represented",
+            solid="S")
+    _expect(doc('<tessellated name="S"/>'), r"<tessellated name=\"S\">: a <tessellated> solid needs facets", solid="S")
+    _expect(doc('<tessellated name="S"><triangular vertex1="a" vertex2="b" vertex3="c"/></tessellated>'),
+            r"<triangular.*vertex1: refers to undefined position 'a'", solid="S")
     _expect(doc('<box name="S" x="abc" y="1" z="1"/>'), r"x=\"abc\": .*undefined name 'abc'", solid="S")
     _expect(doc('<box name="S" x="1+" y="1" z="1"/>'), "bad expression", solid="S")
     _expect(doc('<box name="S" x="1/0" y="1" z="1"/>'), "division by zero", solid="S")
@@ -385,13 +389,13 @@ def test_unsupported_skip_option():
     text = world('<physvol><volumeref ref="t"/></physvol><physvol><volumeref ref="o"/></physvol>',
                  '<volume name="t"><materialref ref="Fe"/><solidref ref="X"/></volume>'
                  '<volume name="o"><materialref ref="Cu"/><solidref ref="O"/></volume>',
-                 '<xtru name="X"/><orb name="O" r="1"/><union name="U"><first ref="X"/><second ref="O"/></union>')
-    _expect(text, r"<xtru name=\"X\">.*on_unsupported='skip'")
+                 '<hype name="X"/><orb name="O" r="1"/><union name="U"><first ref="X"/><second ref="O"/></union>')
+    _expect(text, r"<hype name=\"X\">.*on_unsupported='skip'")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         m = gdml.loads(text, "bad.gdml", on_unsupported="skip")
     assert [leaf.material for leaf in m.leaves()] == ["Cu"]
-    assert any("xtru" in str(w.message) for w in caught)
+    assert any("hype" in str(w.message) for w in caught)
     with pytest.raises(FormatError, match="bad option|on_unsupported must be"):
         gdml.loads(text, "bad.gdml", on_unsupported="maybe")
 
@@ -432,3 +436,30 @@ def test_fuzzed_documents_raise_only_format_errors():
         accepted += 1
         model.leaves()
     assert accepted > 0
+
+
+def test_planar_solids_as_meshes():
+    """<xtru> (a non-convex L through three sections), <tessellated> (a cube of quads,
+    positions in cm times lunit="mm" as Geant4 reads them) and <tet> have the analytic
+    answers: the L's area times height, the cube's and the tetrahedron's volume and hits."""
+    xtru = ('<xtru name="L" lunit="mm">' + "".join(f'<twoDimVertex x="{x}" y="{y}"/>' for x, y in
+            [(0, 0), (2, 0), (2, 1), (1, 1), (1, 2), (0, 2)]) +
+            '<section zOrder="0" zPosition="-1" xOffset="0" yOffset="0" scalingFactor="1"/>'
+            '<section zOrder="1" zPosition="0" xOffset="0" yOffset="0" scalingFactor="1"/>'
+            '<section zOrder="2" zPosition="2" xOffset="0" yOffset="0" scalingFactor="1"/></xtru>')
+    corners = {f"c{i}": ((i >> 2 & 1) * 2 - 1, (i >> 1 & 1) * 2 - 1, (i & 1) * 2 - 1) for i in range(8)}
+    define = "".join(f'<position name="{n}" unit="cm" x="{x}" y="{y}" z="{z}"/>' for n, (x, y, z) in corners.items())
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    tess = ('<tessellated name="C" lunit="mm">' + "".join(
+        f'<quadrangular vertex1="c{a}" vertex2="c{b}" vertex3="c{c}" vertex4="c{d}"/>' for a, b, c, d in quads) +
+        '</tessellated>')
+    tet = '<tet name="T" lunit="mm" vertex1="c0" vertex2="c1" vertex3="c2" vertex4="c4"/>'
+    text = doc(solids=xtru + tess + tet, define=define)
+    L = gdml.loads(text, "x.gdml", solid="L")
+    assert csg.to_mesh(L).volume() == pytest.approx(3.0 * 3.0)
+    hits = csg.trace(L, [[1.5, 1.5, -5.0], [0.5, 1.5, -5.0]], [[0, 0, 1.0]] * 2)
+    assert np.isinf(hits.t[0]) and hits.t[1] == pytest.approx(4.0)        # the notch, then the L
+    cube = gdml.loads(text, "x.gdml", solid="C")
+    box_hits = csg.trace(csg.Box(20.0), [[3.0, 2.0, -50.0]], [[0, 0, 1.0]])
+    assert csg.trace(cube, [[3.0, 2.0, -50.0]], [[0, 0, 1.0]]).t[0] == pytest.approx(box_hits.t[0])
+    assert csg.to_mesh(gdml.loads(text, "x.gdml", solid="T")).volume() == pytest.approx(20.0**3 / 6.0)

@@ -21,11 +21,11 @@ What is read
   pi/e, `+ - * / ^` and sin cos tan asin acos atan atan2 sqrt exp log log10 pow abs min max;
   evaluated by a whitelisted `ast` walker, never `eval`.
 * Solids: box, tube, cutTube, cone, sphere, orb, torus, polycone, polyhedra (zplane rmax is
-  the apothem), trd, trap, para, ellipsoid, eltube, elcone, union, subtraction, intersection,
-  multiUnion, scaledSolid. Phi segments are intersections with (or, above 180 degrees,
+  the apothem), trd, trap, para, tet, ellipsoid, eltube, elcone, union, subtraction,
+  intersection, multiUnion, scaledSolid; tessellated and xtru as triangle-mesh leaves. Phi segments are intersections with (or, above 180 degrees,
   subtractions of) convex wedges; rmin holes are subtracted cones/spheres/tori extended past
   the caps so no faces coincide; theta cuts are cones with their apex at the centre.
-* Not representable exactly by our primitives: tessellated, xtru, tet, arb8, twisted*, hype,
+* Not representable exactly by our primitives: arb8, twisted*, hype,
   paraboloid, genericPolycone, genericPolyhedra, reflectedSolid, opticalsurface-bound solids,
   replicavol/paramvol/divisionvol, loops and `physvol file=`. `on_unsupported="error"` raises a
   FormatError naming the element and its name; `"skip"` warns (UserWarning) and leaves the solid

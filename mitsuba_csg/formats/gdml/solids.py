@@ -14,16 +14,17 @@ import numpy as np
 from ...errors import ModelError
 from ...model import values
 from ...model.construct import frustum_chunk, inner_cone, phi_cut, theta_cut
+from ...model.mesh import Mesh
 from ...model.nodes import Node, Operation
 from ...model.polyhedra import hull_planes
 from ...model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Sphere, Torus
 from ..reading import FormatError
-from .defines import affine, placement, rotation_matrix
+from .defines import affine, placement, rotation_matrix, vector
 from .expressions import TWO_PI
 
 # Solids we know Geant4 has but cannot represent exactly with our primitives.
 UNSUPPORTED_SOLIDS = (
-    "tessellated", "xtru", "tet", "arb8", "twistedbox", "twistedtrd", "twistedtrap", "twistedtubs",
+    "arb8", "twistedbox", "twistedtrd", "twistedtrap", "twistedtubs",
     "hype", "paraboloid", "genericPolycone", "genericPolyhedra", "reflectedSolid", "loop",
     "gencone",
 )
@@ -312,6 +313,78 @@ class Solids:
     def _hull(self, el, vertices):
         try:
             return ConvexPolyhedron(hull_planes(vertices, max_faces=6))
+        except ModelError as e:
+            self.doc.fail(el, str(e))
+
+    # ---- Planar-faced solids as triangle meshes (exact) ----
+
+    def _vertex(self, el, attr, lunit) -> np.ndarray:
+        """A facet vertex: a named <position> of <define>, times the solid's lunit (as Geant4)."""
+        name = el.get(attr)
+        if not name:
+            self.doc.fail(el, f"needs a {attr} attribute (the name of a <position>)")
+        target = self.doc.vectors["position"].get(name)
+        if target is None:
+            self.doc.fail(el, f"{attr}: refers to undefined position {name!r}")
+        return vector(self.doc, target, "position") * lunit
+
+    def _solid_tet(self, el):
+        lunit, _ = self._units(el)
+        return self._hull(el, [self._vertex(el, f"vertex{k}", lunit) for k in range(1, 5)])
+
+    def _solid_tessellated(self, el):
+        """Triangular and quadrangular facets, counter-clockwise seen from outside (G4TessellatedSolid);
+        RELATIVE facets give their later vertices as offsets from the first."""
+        lunit, _ = self._units(el)
+        corners = []
+        for facet in el:
+            count = {"triangular": 3, "quadrangular": 4}.get(facet.tag)
+            if count is None:
+                self.doc.fail(facet, f"unknown facet <{facet.tag}> in <tessellated>")
+            points = [self._vertex(facet, f"vertex{k}", lunit) for k in range(1, count + 1)]
+            kind = (facet.get("type") or "ABSOLUTE").upper()
+            if kind == "RELATIVE":
+                points = [points[0]] + [points[0] + p for p in points[1:]]
+            elif kind != "ABSOLUTE":
+                self.doc.fail(facet, f"type: expected ABSOLUTE or RELATIVE, got {facet.get('type')!r}")
+            corners.append(points[:3])
+            if count == 4:
+                corners.append([points[0], points[2], points[3]])
+        if not corners:
+            self.doc.fail(el, "a <tessellated> solid needs facets")
+        return self._mesh(el, np.array(corners).reshape(-1, 3), np.arange(3 * len(corners)).reshape(-1, 3))
+
+    def _solid_xtru(self, el):
+        """A polygon swept through z sections, each scaled and offset (G4ExtrudedSolid)."""
+        import manifold3d as m3
+        lunit, _ = self._units(el)
+        polygon = np.array([[self.doc.number(v, a, None, lunit) for a in "xy"] for v in el.findall("twoDimVertex")])
+        sections = sorted(((self.doc.number(sec, "zOrder", None), self.doc.number(sec, "zPosition", None, lunit),
+                            self.doc.number(sec, "xOffset", 0.0, lunit), self.doc.number(sec, "yOffset", 0.0, lunit),
+                            self.doc.number(sec, "scalingFactor", 1.0)) for sec in el.findall("section")))
+        if len(polygon) < 3 or len(sections) < 2:
+            self.doc.fail(el, f"an <xtru> needs at least 3 <twoDimVertex> and 2 <section>, got {len(polygon)} "
+                          f"and {len(sections)}")
+        x, y = polygon[:, 0], polygon[:, 1]
+        if np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y) < 0:
+            polygon = polygon[::-1]                         # counter-clockwise, as the caps expect
+        n = len(polygon)
+        rings = [np.column_stack([scale * polygon + (dx, dy), np.full(n, z)]) for _, z, dx, dy, scale in sections]
+        i = np.arange(n)
+        j = (i + 1) % n
+        faces = []
+        for s in range(len(rings) - 1):
+            lo, hi = s * n, (s + 1) * n
+            faces += [np.column_stack([lo + i, lo + j, hi + j]), np.column_stack([lo + i, hi + j, hi + i])]
+        cap = np.asarray(m3.triangulate([polygon]), dtype=np.int64)
+        faces += [cap[:, ::-1], cap + (len(rings) - 1) * n]
+        return self._mesh(el, np.vstack(rings), np.vstack(faces))
+
+    def _mesh(self, el, vertices, faces):
+        from ..mesh_import import weld
+        vertices, faces = weld(vertices, faces)
+        try:
+            return Mesh(vertices, faces)
         except ModelError as e:
             self.doc.fail(el, str(e))
 

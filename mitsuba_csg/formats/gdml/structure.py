@@ -57,7 +57,8 @@ def scene(doc, solids, depth: int | None, show_world: bool) -> Node:
             continue
         children = []
         for pv in vol:
-            if pv.tag in ("replicavol", "paramvol", "divisionvol"):
+            if pv.tag in ("replicavol", "paramvol", "divisionvol", "loop"):
+                # A <loop> of placements left out silently would be a wrong image.
                 doc.unsupported(pv, f"<{pv.tag}> is not supported")
                 continue
             if pv.tag != "physvol":
