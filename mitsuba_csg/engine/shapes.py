@@ -195,67 +195,69 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
     while dr.hint((node != _NO_NODE) | (tri < tri_end), label="csg_mesh_bvh"):
         # One triangle of the current leaf, or one node.
         testing = tri < tri_end
-        row = (start + tri) * 3
-        va = dr.gather(b.Array4f, triangles, row, testing)
-        vb = dr.gather(b.Array4f, triangles, row + 1, testing)
-        vc = dr.gather(b.Array4f, triangles, row + 2, testing)
-        # Projected vertices relative to the origin, each computed the same way in every
-        # triangle that shares it.
-        az, bz, cz = _pick(va, kz) - _pick(o, kz), _pick(vb, kz) - _pick(o, kz), _pick(vc, kz) - _pick(o, kz)
-        ax = _pick(va, kx) - _pick(o, kx) - sx * az
-        ay = _pick(va, ky) - _pick(o, ky) - sy * az
-        bx = _pick(vb, kx) - _pick(o, kx) - sx * bz
-        by = _pick(vb, ky) - _pick(o, ky) - sy * bz
-        cx = _pick(vc, kx) - _pick(o, kx) - sx * cz
-        cy = _pick(vc, ky) - _pick(o, ky) - sy * cz
-        # Edge functions of the edges (a, b), (a, c), (b, c), lower vertex index first: a
-        # shared edge gives the same value, negated, in both of its triangles.
-        e_ab = ax * by - ay * bx
-        e_ac = ax * cy - ay * cx
-        e_bc = bx * cy - by * cx
-        odd = va.w != 0                            # the sorted order reverses the winding
-        u = dr.select(odd, e_bc, -e_bc)
-        v = dr.select(odd, -e_ac, e_ac)
-        w = dr.select(odd, e_ab, -e_ab)
-        inside = ((u >= 0) & (v >= 0) & (w >= 0)) | ((u <= 0) & (v <= 0) & (w <= 0))
-        det = u + v + w
-        t_tri = (u * az + v * bz + w * cz) * sz / det
-        # Neighbouring triangles' t for the same edge point differ like 1 / |cos|.
-        e1, e2 = b.Array3f(vb.x - va.x, vb.y - va.y, vb.z - va.z), b.Array3f(vc.x - va.x, vc.y - va.y, vc.z - va.z)
-        n = dr.cross(e1, e2)
-        cos = dr.abs(dr.dot(n, d)) * dr.rsqrt(dr.squared_norm(n) * dr.squared_norm(d))
-        t_min = t_start + skip * dr.minimum(dr.rcp(cos), 2.0**MAX_SLOPE)
-        take = testing & inside & (det != 0) & (t_tri > t_min) & (t_tri < t)
-        t = dr.select(take, t_tri, t)
-        face = dr.select(take, tri, face)
-        enter = dr.select(take, det > 0, enter)
+        if testing:
+            row = (start + tri) * 3
+            va = dr.gather(b.Array4f, triangles, row, testing)
+            vb = dr.gather(b.Array4f, triangles, row + 1, testing)
+            vc = dr.gather(b.Array4f, triangles, row + 2, testing)
+            # Projected vertices relative to the origin, each computed the same way in every
+            # triangle that shares it.
+            az, bz, cz = _pick(va, kz) - _pick(o, kz), _pick(vb, kz) - _pick(o, kz), _pick(vc, kz) - _pick(o, kz)
+            ax = _pick(va, kx) - _pick(o, kx) - sx * az
+            ay = _pick(va, ky) - _pick(o, ky) - sy * az
+            bx = _pick(vb, kx) - _pick(o, kx) - sx * bz
+            by = _pick(vb, ky) - _pick(o, ky) - sy * bz
+            cx = _pick(vc, kx) - _pick(o, kx) - sx * cz
+            cy = _pick(vc, ky) - _pick(o, ky) - sy * cz
+            # Edge functions of the edges (a, b), (a, c), (b, c), lower vertex index first: a
+            # shared edge gives the same value, negated, in both of its triangles.
+            e_ab = ax * by - ay * bx
+            e_ac = ax * cy - ay * cx
+            e_bc = bx * cy - by * cx
+            odd = va.w != 0                            # the sorted order reverses the winding
+            u = dr.select(odd, e_bc, -e_bc)
+            v = dr.select(odd, -e_ac, e_ac)
+            w = dr.select(odd, e_ab, -e_ab)
+            inside = ((u >= 0) & (v >= 0) & (w >= 0)) | ((u <= 0) & (v <= 0) & (w <= 0))
+            det = u + v + w
+            t_tri = (u * az + v * bz + w * cz) * sz / det
+            # Neighbouring triangles' t for the same edge point differ like 1 / |cos|.
+            e1, e2 = b.Array3f(vb.x - va.x, vb.y - va.y, vb.z - va.z), b.Array3f(vc.x - va.x, vc.y - va.y, vc.z - va.z)
+            n = dr.cross(e1, e2)
+            cos = dr.abs(dr.dot(n, d)) * dr.rsqrt(dr.squared_norm(n) * dr.squared_norm(d))
+            t_min = t_start + skip * dr.minimum(dr.rcp(cos), 2.0**MAX_SLOPE)
+            take = testing & inside & (det != 0) & (t_tri > t_min) & (t_tri < t)
+            t = dr.select(take, t_tri, t)
+            face = dr.select(take, tri, face)
+            enter = dr.select(take, det > 0, enter)
         tri = dr.select(testing, tri + 1, tri)
 
         # A node: on a box hit, a leaf's triangles come next; an inner node's child nearer
         # along its split axis is visited first and the other pushed. Otherwise pop.
         stepping = ~testing & (node != _NO_NODE)
-        lo = dr.gather(b.Array4f, nodes, node * 2, stepping)
-        hi = dr.gather(b.Array4f, nodes, node * 2 + 1, stepping)
-        t1 = (b.Array3f(lo.x, lo.y, lo.z) - o) * inv_d
-        t2 = (b.Array3f(hi.x, hi.y, hi.z) - o) * inv_d
-        near = dr.max(dr.minimum(t1, t2))
-        far = dr.min(dr.maximum(t1, t2))
-        hit = stepping & (near <= far) & (far > t_start) & (near <= t)
-        word = dr.reinterpret_array(b.UInt32, hi.w)
-        count = K.mesh_tris_count(word)
-        leaf = hit & (count > 0)
-        inner = hit & (count == 0)
-        tri = dr.select(leaf, K.mesh_tris_first(word), tri)
-        tri_end = dr.select(leaf, K.mesh_tris_first(word) + count, tri_end)
-        right = dr.reinterpret_array(b.UInt32, lo.w)
-        right_first = _pick(d, K.mesh_tris_first(word)) < 0
-        stack.write(dr.select(right_first, node + 1, right), sp, inner)
-        sp = dr.select(inner, sp + 1, sp)
-        pop = stepping & ~inner & (sp > 0)
-        popped = stack.read(dr.select(pop, sp - 1, 0), pop)    # an index in range on every lane
-        sp = dr.select(pop, sp - 1, sp)
-        node = dr.select(inner, dr.select(right_first, right, node + 1),
-                         dr.select(pop, popped, dr.select(stepping, _NO_NODE, node)))
+        if stepping:
+            lo = dr.gather(b.Array4f, nodes, node * 2, stepping)
+            hi = dr.gather(b.Array4f, nodes, node * 2 + 1, stepping)
+            t1 = (b.Array3f(lo.x, lo.y, lo.z) - o) * inv_d
+            t2 = (b.Array3f(hi.x, hi.y, hi.z) - o) * inv_d
+            near = dr.max(dr.minimum(t1, t2))
+            far = dr.min(dr.maximum(t1, t2))
+            hit = stepping & (near <= far) & (far > t_start) & (near <= t)
+            word = dr.reinterpret_array(b.UInt32, hi.w)
+            count = K.mesh_tris_count(word)
+            leaf = hit & (count > 0)
+            inner = hit & (count == 0)
+            tri = dr.select(leaf, K.mesh_tris_first(word), tri)
+            tri_end = dr.select(leaf, K.mesh_tris_first(word) + count, tri_end)
+            right = dr.reinterpret_array(b.UInt32, lo.w)
+            right_first = _pick(d, K.mesh_tris_first(word)) < 0
+            stack.write(dr.select(right_first, node + 1, right), sp, inner)
+            sp = dr.select(inner, sp + 1, sp)
+            pop = stepping & ~inner & (sp > 0)
+            popped = stack.read(dr.select(pop, sp - 1, 0), pop)    # an index in range on every lane
+            sp = dr.select(pop, sp - 1, sp)
+            node = dr.select(inner, dr.select(right_first, right, node + 1),
+                             dr.select(pop, popped, dr.select(stepping, _NO_NODE, node)))
     found = dr.isfinite(t)
     plane = dr.gather(b.Array4f, plane_buf, start + face, found)
     cls = dr.select(found, dr.select(enter, b.UInt32(ENTER), b.UInt32(EXIT)), b.UInt32(MISS))
