@@ -13,11 +13,17 @@
 Supported nodes: `group`, `union`, `render` (implicit unions), `difference`, `intersection`,
 `multmatrix(m)` (4x4 or 3x4 affine), `color(c, alpha)` (a material named `color_R_G_B_A`,
 or the colour's name for `color("red")`), `cube(size, center)`, `sphere(r | d)`,
-`cylinder(h, r1, r2 | r | d | d1 | d2, center)` (cones and r = 0 ends included) and
-`polyhedron(points, faces)` when it is a closed convex solid. The modifiers `#` (highlight)
+`cylinder(h, r1, r2 | r | d | d1 | d2, center)` (cones and r = 0 ends included),
+`polyhedron(points, faces)` (a convex polyhedron when it is one, otherwise a closed mesh
+leaf), and 2D outlines extruded: `square`, `circle` (with OpenSCAD's `$fn`/`$fa`/`$fs`
+fragments), `polygon(points, paths)`, their 2D unions, differences, intersections and
+placements, under `linear_extrude(height, center, twist, slices, scale)` or
+`rotate_extrude(angle)`, as mesh leaves (`formats.openscad_2d`). The modifiers `#` (highlight)
 and `!` (root: that subtree alone is the model, as in OpenSCAD) keep their subtree; `%`
-(background) and `*` (disabled) drop it. The solids are the exact analytic ones, not
-OpenSCAD's `$fn`/`$fa`/`$fs` facets, which are ignored.
+(background) and `*` (disabled) drop it. The 3D solids are the exact analytic ones, not
+OpenSCAD's `$fn`/`$fa`/`$fs` facets; a 2D circle is OpenSCAD's polygon, as OpenSCAD renders
+its extrusions. A twisted extrusion's side quads may be split along the other diagonal than
+the OpenSCAD version at hand chooses.
 
 Semantics follow OpenSCAD: a cube has its corner at the origin unless `center = true`; a
 cylinder spans z in [0, h] unless centred; degenerate solids (a size, radius or height <= 0,
@@ -28,7 +34,7 @@ operand. A model that ends up empty is a `FormatError`.
 
 Files are untrusted input: every problem is a `FormatError` (a `ModelError`) whose message
 starts with the file, line and column, e.g. `model.csg: line 3, column 5: sphere: r must be a
-finite number, got inf`. 2D and other unsupported nodes (`square`, `linear_extrude`, `hull`,
+finite number, got inf`. Unsupported nodes (`hull`, `minkowski`, `offset`, `text`,
 `import`, ...) are refused by name, or skipped with a warning when `on_unsupported="skip"`.
 File size, statement count and nesting depth are bounded; parsing and evaluation use
 explicit stacks, never deep recursion.
@@ -45,8 +51,10 @@ import numpy as np
 from ..errors import ModelError
 from ..model import transform as tf
 from ..model.nodes import DIFFERENCE, INTERSECTION, UNION, Node, Operation
+from ..model.mesh import Mesh, MeshOrientationWarning
 from ..model.polyhedra import convex_planes
 from ..model.primitives import Box, Cone, ConvexPolyhedron, Sphere
+from . import openscad_2d as flat
 from .reading import FormatError, read_model_bytes
 
 MAX_FILE_BYTES = 256 * 2 ** 20     # refuse larger files before reading them
@@ -55,13 +63,12 @@ MAX_VALUE_DEPTH = 64               # nesting of vectors inside one argument valu
 MAX_STATEMENTS = 10_000_000        # statements in one file
 
 SUPPORTED_NODES = ("group", "union", "render", "difference", "intersection", "multmatrix", "color",
-                   "cube", "sphere", "cylinder", "polyhedron")
+                   "cube", "sphere", "cylinder", "polyhedron", "square", "circle", "polygon", "linear_extrude",
+                   "rotate_extrude")
 UNSUPPORTED_NODES = {
     # 2D primitives and operations
-    "square": "a 2D primitive", "circle": "a 2D primitive", "polygon": "a 2D primitive",
     "text": "a 2D primitive", "import": "imported geometry", "projection": "a 2D operation",
     "offset": "a 2D operation", "roof": "a 2D-to-3D operation", "fill": "a 2D operation",
-    "linear_extrude": "a 2D-to-3D extrusion", "rotate_extrude": "a 2D-to-3D extrusion",
     # 3D nodes mitsuba-csg cannot represent exactly
     "surface": "a height-map mesh", "minkowski": "a Minkowski sum", "hull": "a convex hull",
     "resize": "a size-dependent transform",
@@ -344,7 +351,8 @@ NULL, EMPTY = _Nothing("NULL"), _Nothing("EMPTY")
 _POSITIONAL = {
     "cube": ("size", "center"), "sphere": ("r",), "cylinder": ("h", "r1", "r2", "center"),
     "polyhedron": ("points", "faces", "convexity"), "multmatrix": ("m",), "color": ("c", "alpha"),
-    "render": ("convexity",),
+    "render": ("convexity",), "square": ("size", "center"), "circle": ("r",), "polygon": ("points", "paths"),
+    "linear_extrude": ("height",), "rotate_extrude": ("angle",),
 }
 _KNOWN_ARGS = {
     "cube": {"size", "center"}, "sphere": {"r", "d"},
@@ -352,7 +360,11 @@ _KNOWN_ARGS = {
     "polyhedron": {"points", "faces", "triangles", "convexity"}, "multmatrix": {"m"},
     "color": {"c", "alpha"}, "render": {"convexity"}, "group": set(), "union": set(),
     "difference": set(), "intersection": set(),
+    "square": {"size", "center"}, "circle": {"r", "d"}, "polygon": {"points", "paths", "convexity"},
+    "linear_extrude": {"height", "center", "convexity", "twist", "slices", "scale", "segments", "v"},
+    "rotate_extrude": {"angle", "convexity"},
 }
+_FACETS = {"$fn": 0.0, "$fs": 2.0, "$fa": 12.0}         # OpenSCAD's defaults
 
 
 class _Evaluator:
@@ -459,7 +471,7 @@ class _Evaluator:
         if name is None or name in ("group", "union", "render"):
             if name == "render":
                 self.arguments(st)
-            return _combine(UNION, kids)
+            return self.combine(st, UNION, kids)
         if self.is_unsupported(st):
             what = UNSUPPORTED_NODES.get(name)
             text = (f"{name} ({what}) is not supported by mitsuba-csg" if what else
@@ -471,21 +483,27 @@ class _Evaluator:
                                   f"(or load with on_unsupported='skip')")
         args = self.arguments(st)
         if name in ("difference", "intersection"):
-            return _combine(DIFFERENCE if name == "difference" else INTERSECTION, kids)
+            return self.combine(st, DIFFERENCE if name == "difference" else INTERSECTION, kids)
+        if name in ("linear_extrude", "rotate_extrude"):
+            return self.extrude(st, args, self.combine(st, UNION, kids, flat_context=True))
         if name == "multmatrix":
             m = self.matrix(st, args)
-            body = _combine(UNION, kids)
+            body = self.combine(st, UNION, kids)
             if isinstance(body, _Nothing):
                 return body
             if m is tf.IDENTITY or np.array_equal(m, tf.IDENTITY):
                 return body
+            if isinstance(body, flat.Shape2D):
+                return flat.transform(body, m)
             try:
                 return body.transform(m)
             except ModelError:         # singular: the children collapse to nothing 3D
                 self.src.warn(st.pos, "multmatrix: singular matrix flattens its children; they are dropped")
                 return EMPTY
         if name == "color":
-            body = _combine(UNION, kids)
+            body = self.combine(st, UNION, kids)
+            if isinstance(body, flat.Shape2D):
+                return body           # a 2D colour applies to no leaf of ours
             material = self.color(st, args)
             return body if isinstance(body, _Nothing) or material is None else body.with_material(material)
         if st.children:
@@ -496,6 +514,124 @@ class _Evaluator:
             raise
         except ModelError as e:
             self.src.fail(st.pos, f"{name}: {e}")
+
+    def combine(self, st, kind: str, kids: list, flat_context: bool = False):
+        """`_combine`, and 2D operands combined in 2D. Operands of the other dimension are
+        dropped with a warning, as OpenSCAD does: 2D ones among 3D ones, and 3D ones under
+        an extrusion (`flat_context`)."""
+        flats = [k for k in kids if isinstance(k, flat.Shape2D)]
+        solids = [k for k in kids if not isinstance(k, (flat.Shape2D, _Nothing))]
+        if flat_context and solids:
+            self.src.warn(st.pos, f"{st.name}: ignoring its 3D children (it extrudes 2D ones)")
+            kids = [k for k in kids if not isinstance(k, Node)]
+            solids = []
+            if not flats:
+                return NULL
+        if not flats:
+            return _combine(kind, kids)
+        if solids:
+            self.src.warn(st.pos, f"{st.name or 'group'}: mixing 2D and 3D operands; the 2D ones are ignored")
+            return _combine(kind, [k for k in kids if not isinstance(k, flat.Shape2D)])
+        kids = [k for k in kids if k is not NULL]
+        if kind == INTERSECTION and any(k is EMPTY for k in kids):
+            return EMPTY
+        if kind == DIFFERENCE and kids[0] is EMPTY:
+            return EMPTY
+        return flat.combine(kind, [k for k in kids if k is not EMPTY])
+
+    def facets(self, st) -> tuple[float, float, float]:
+        """($fn, $fs, $fa) of a statement (the .csg export writes them on every round node)."""
+        found = dict(_FACETS)
+        for key, value, pos in st.args:
+            if key in found and value is not None:
+                if isinstance(value, bool) or not isinstance(value, float) or not math.isfinite(value):
+                    self.src.fail(pos, f"{st.name}: {key} must be a finite number, got {_show(value)}")
+                found[key] = value
+        if found["$fs"] <= 0 or found["$fa"] <= 0:
+            self.src.fail(st.pos, f"{st.name}: $fs and $fa must be > 0, got {found['$fs']:g} and {found['$fa']:g}")
+        return found["$fn"], found["$fs"], found["$fa"]
+
+    def extrude(self, st, args, body):
+        if isinstance(body, _Nothing):
+            return body
+        if not isinstance(body, flat.Shape2D):
+            self.src.fail(st.pos, f"{st.name}: its children must be 2D (square, circle, polygon, ...)")
+        if flat.is_empty(body):
+            self.src.warn(st.pos, f"{st.name}: the 2D outline is empty; OpenSCAD makes nothing of it")
+            return EMPTY
+        fn, fs, fa = self.facets(st)
+        if st.name == "rotate_extrude":
+            angle = self.number(st, args, "angle", 360.0)
+            (x0, _, _, _) = body.section.bounds()
+            if x0 < -1e-9 * max(1.0, abs(x0)):
+                self.src.fail(st.pos, "rotate_extrude: the outline must lie at x >= 0 (OpenSCAD refuses it too)")
+            if angle == 0:
+                self.src.warn(st.pos, "rotate_extrude: angle 0 sweeps nothing")
+                return EMPTY
+            return flat.rotate_extrude(body, max(-360.0, min(360.0, angle)), fn, fs, fa)
+        height = self.number(st, args, "height", 100.0)
+        if height <= 0:
+            self.src.warn(st.pos, f"linear_extrude: height {height:g} has no volume; OpenSCAD makes nothing of it")
+            return EMPTY
+        twist = self.number(st, args, "twist", 0.0)
+        slices = self.number(st, args, "slices", None)
+        scale = [1.0, 1.0]
+        if "scale" in args and args["scale"][0] is not None:
+            value, pos = args["scale"]
+            if isinstance(value, float) and not isinstance(value, bool):
+                scale = [value, value]
+            elif isinstance(value, list) and len(value) == 2 and all(isinstance(x, float) for x in value):
+                scale = list(value)
+            else:
+                self.src.fail(pos, f"linear_extrude: scale must be a number or [sx, sy], got {_show(value)}")
+            if not all(math.isfinite(x) and x >= 0 for x in scale):
+                self.src.fail(pos, f"linear_extrude: scale must be finite and >= 0, got {_show(value)}")
+        return flat.linear_extrude(body, height, self.flag(st, args, "center"), twist,
+                                   None if slices is None else max(1, int(slices)), scale, fn, fs, fa)
+
+    def make_square(self, st, args):
+        size = [1.0, 1.0]
+        if "size" in args and args["size"][0] is not None:
+            value, pos = args["size"]
+            if isinstance(value, float) and not isinstance(value, bool):
+                size = [value, value]
+            elif isinstance(value, list) and len(value) == 2 and all(isinstance(x, float) for x in value):
+                size = list(value)
+            else:
+                self.src.fail(pos, f"square: size must be a number or [x, y], got {_show(value)}")
+        if not all(math.isfinite(x) for x in size) or min(size) <= 0:
+            self.src.warn(st.pos, f"square: size {_show(size)} has no area; OpenSCAD makes nothing of it")
+            return EMPTY
+        return flat.square(size, self.flag(st, args, "center"))
+
+    def make_circle(self, st, args):
+        r = self.radius(st, args, "r", "d", 1.0)
+        if r <= 0:
+            self.src.warn(st.pos, f"circle: radius {r:g} has no area; OpenSCAD makes nothing of it")
+            return EMPTY
+        return flat.circle(r, *self.facets(st))
+
+    def make_polygon(self, st, args):
+        points = args.get("points", (None, st.pos))
+        pts = points[0]
+        if pts is None or pts == []:
+            self.src.warn(st.pos, "polygon: no points; OpenSCAD makes nothing of it")
+            return EMPTY
+        if not (isinstance(pts, list) and len(pts) >= 3 and all(
+                isinstance(p, list) and len(p) == 2 and
+                all(isinstance(x, float) and not isinstance(x, bool) and math.isfinite(x) for x in p) for p in pts)):
+            self.src.fail(points[1], "polygon: points must be a list of at least 3 [x, y] with finite numbers")
+        paths = args.get("paths", (None, st.pos))[0]
+        if paths is not None:
+            if not (isinstance(paths, list) and all(isinstance(p, list) and all(
+                    isinstance(x, float) and x == int(x) and 0 <= x < len(pts) for x in p) for p in paths)):
+                self.src.fail(args["paths"][1], f"polygon: paths must be lists of indices 0..{len(pts) - 1}")
+            paths = [[int(x) for x in p] for p in paths]
+        shape = flat.polygon(np.array(pts, dtype=np.float64), paths)
+        if flat.is_empty(shape):
+            self.src.warn(st.pos, "polygon: no area; OpenSCAD makes nothing of it")
+            return EMPTY
+        return shape
 
     def color(self, st, args):
         if "c" not in args or args["c"][0] is None:
@@ -591,14 +727,19 @@ class _Evaluator:
                 self.src.fail(faces[1], f"polyhedron: face {k} has fewer than 3 distinct points")
             index_faces.append(idx)
         planes, problem = convex_planes(np.array(pts, dtype=np.float64), index_faces)
-        if problem:
-            line = self.src.line(st.pos)
-            self.src.fail(st.pos, f"polyhedron at line {line} is not {problem}; non-convex polyhedra "
-                                  "need mesh leaves, which mitsuba-csg does not have yet")
-        if len(planes) > ConvexPolyhedron.MAX_PLANES:
-            self.src.fail(st.pos, f"polyhedron: a convex polyhedron with {len(planes)} distinct faces; "
-                                  f"mitsuba-csg allows at most {ConvexPolyhedron.MAX_PLANES}")
-        return ConvexPolyhedron(planes)
+        if not problem and len(planes) <= ConvexPolyhedron.MAX_PLANES:
+            return ConvexPolyhedron(planes)
+        # Any other closed polyhedron is a mesh leaf. OpenSCAD lists a face's points clockwise
+        # seen from outside: reversed, they are the counter-clockwise triangles a Mesh takes.
+        triangles = [(f[0], f[k + 1], f[k]) for f in index_faces for k in range(1, len(f) - 1)]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", MeshOrientationWarning)     # either winding is accepted
+            try:
+                return Mesh(np.array(pts, dtype=np.float64), np.array(triangles))
+            except ModelError as e:
+                line = self.src.line(st.pos)
+                self.src.fail(st.pos, f"polyhedron at line {line} is neither a closed convex solid nor a closed "
+                                      f"mesh: {e}")
 
 
 def _suppressed(st: _Statement) -> bool:
@@ -663,6 +804,8 @@ def loads(text: str | bytes, source: str = "<string>", *, on_unsupported: str = 
     src = _Source(source, text.removeprefix("\ufeff"))
     statements = _Parser(src).parse()
     result = _Evaluator(src, on_unsupported).evaluate(statements)
+    if isinstance(result, flat.Shape2D):
+        raise FormatError(f"{source}: the model is 2D (extrude it with linear_extrude or rotate_extrude)")
     if isinstance(result, _Nothing):
         raise FormatError(f"{source}: the model is empty (no solid geometry"
                           f"{'' if result is NULL else ': every solid is degenerate or removed'})")

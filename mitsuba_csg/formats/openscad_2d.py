@@ -1,0 +1,117 @@
+"""OpenSCAD's 2D geometry and extrusions, with OpenSCAD's own facets (manifold3d).
+
+A 2D subtree (`square`, `circle`, `polygon`, their unions, differences, intersections and
+`multmatrix` placements) becomes a `manifold3d.CrossSection`; `linear_extrude` and
+`rotate_extrude` turn it into a closed triangle mesh, a `Mesh` leaf. Unlike the 3D primitives,
+which we trace exactly, a 2D circle *is* a polygon in OpenSCAD: its `$fn`, `$fa`, `$fs`
+decide the facets of the extrusion, so we use OpenSCAD's fragment rule and vertex placement,
+and the mesh we trace is the solid OpenSCAD renders.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..model.mesh import Mesh
+
+GRID_FINE = 0.00000095367431640625      # OpenSCAD's smallest radius with more than 3 fragments
+
+
+def fragments(r: float, fn: float, fs: float, fa: float) -> int:
+    """OpenSCAD's number of segments of a circle of radius r (Calc::get_fragments_from_r)."""
+    if r < GRID_FINE:
+        return 3
+    if fn > 0.0:
+        return int(fn) if fn >= 3 else 3
+    return int(math.ceil(max(min(360.0 / fa, r * 2.0 * math.pi / fs), 5)))
+
+
+class Shape2D:
+    """A 2D result of the evaluation: a manifold3d CrossSection (possibly empty)."""
+
+    __slots__ = ("section",)
+
+    def __init__(self, section):
+        self.section = section
+
+
+def square(size, center: bool) -> Shape2D:
+    import manifold3d as m3
+    return Shape2D(m3.CrossSection.square(tuple(size), center=center))
+
+
+def circle(r: float, fn: float, fs: float, fa: float) -> Shape2D:
+    import manifold3d as m3
+    n = fragments(r, fn, fs, fa)
+    phi = 2.0 * np.pi * np.arange(n) / n
+    return Shape2D(m3.CrossSection([np.column_stack([r * np.cos(phi), r * np.sin(phi)])]))
+
+
+def polygon(points: np.ndarray, paths) -> Shape2D:
+    """Paths as OpenSCAD fills them: every path an outline, overlaps by the even-odd rule."""
+    import manifold3d as m3
+    contours = [points[list(p)] for p in paths] if paths else [points]
+    return Shape2D(m3.CrossSection(contours, m3.FillRule.EvenOdd))
+
+
+def combine(kind: str, shapes: list[Shape2D]) -> Shape2D:
+    import manifold3d as m3
+    sections = [s.section for s in shapes]
+    op = {"union": m3.OpType.Add, "difference": m3.OpType.Subtract, "intersection": m3.OpType.Intersect}[kind]
+    return Shape2D(m3.CrossSection.batch_boolean(sections, op) if len(sections) > 1 else sections[0])
+
+
+def transform(shape: Shape2D, matrix: np.ndarray) -> Shape2D:
+    """The xy part of a 3D multmatrix, as OpenSCAD applies it to 2D children."""
+    m = np.array([[matrix[0, 0], matrix[0, 1], matrix[0, 3]], [matrix[1, 0], matrix[1, 1], matrix[1, 3]]])
+    return Shape2D(shape.section.transform(m))
+
+
+def is_empty(shape: Shape2D) -> bool:
+    return shape.section.is_empty() or shape.section.area() <= 0.0
+
+
+def linear_extrude(shape: Shape2D, height: float, center: bool, twist: float, slices: int | None,
+                   scale, fn: float, fs: float, fa: float) -> Mesh:
+    """OpenSCAD's linear_extrude: positive twist turns clockwise seen from +z (left-handed)."""
+    import manifold3d as m3
+    if slices is None:
+        slices = 1 if twist == 0.0 else helix_slices(_largest_radius(shape), height, twist, fn, fs, fa)
+    solid = m3.Manifold.extrude(shape.section, height, n_divisions=max(1, slices), twist_degrees=-twist,
+                                scale_top=tuple(scale))
+    if center:
+        solid = solid.translate((0.0, 0.0, -0.5 * height))
+    return Mesh.from_manifold(solid)
+
+
+def helix_slices(r: float, height: float, twist: float, fn: float, fs: float, fa: float) -> int:
+    """OpenSCAD's slice count of a twisted extrusion (Calc::get_helix_slices): at least one
+    slice per 120 degrees; with $fn, $fn slices per turn; otherwise the fewer of one per
+    $fa degrees and one per $fs of the outermost vertex's helix length."""
+    twist = abs(twist)
+    least = max(int(math.ceil(twist / 120.0)), 1)
+    if r < GRID_FINE:
+        return least
+    if fn > 0.0:
+        return max(int(math.ceil(twist / 360.0 * fn)), least)
+    turn = math.radians(twist)
+    rise = height / turn
+    helix = turn * math.sqrt(r * r + rise * rise)
+    return max(min(int(math.ceil(twist / fa)), int(math.ceil(helix / fs))), least)
+
+
+def _largest_radius(shape: Shape2D) -> float:
+    polygons = shape.section.to_polygons()
+    return float(max((np.linalg.norm(np.asarray(p), axis=1).max() for p in polygons if len(p)), default=0.0))
+
+
+def rotate_extrude(shape: Shape2D, angle: float, fn: float, fs: float, fa: float) -> Mesh:
+    """The xy outline (x >= 0) swept about z from +x by `angle` degrees (right-handed)."""
+    import manifold3d as m3
+    (_, _), (x1, _) = np.reshape(shape.section.bounds(), (2, 2))
+    n = fragments(x1, fn, fs, fa)
+    solid = m3.Manifold.revolve(shape.section, n, abs(angle))
+    if angle < 0:
+        solid = solid.mirror((0.0, 1.0, 0.0))
+    return Mesh.from_manifold(solid)
