@@ -59,6 +59,28 @@ def main():
                        f"{fmt(plus.get('mean_steps'), '.0f')} | {fmt(plus.get('speedup'), '.1f')} | "
                        f"{fmt(plus.get('path_1spp_s'), '.2f')} | {fmt(paper[0], 'g')} / {fmt(paper[1], 'g')} |")
         out.append("")
+    cheese = load("table2_cheese")
+    if cheese:
+        m = cheese["machine"]
+        out += ["## The Cheese families, with the traversal mechanisms", "",
+                f"`./run.sh bench trace_throughput.py --scenes cheese-500,cheese-1000,cheese-8000,cheese-cp-1000,"
+                f"cheese-cp-8000 --no-compile --no-path --repeats 2 --name table2_cheese` ({m['date']}, "
+                f"`{m['variant']}`). The paper's generator keeps the hole radii as the count grows, so Cheese-8000 "
+                "is almost all holes; `cheese-cp-N` scales the radii so that Cheese-500's solid fraction holds "
+                "(`scenes.constant_porosity_cheese`). 'solid' is the solid fraction of the cube, 'holes/ray' the "
+                "mean number of holes a camera ray that enters the cube crosses before its visible hit "
+                "(`benchmarks/cheese_statistics.py`, float64, from the generator's holes).", "",
+                "| scene | prims | solid | holes/ray | steps/ray + | Mrays/s + | steps/ray - | Mrays/s - |",
+                "|---|---|---|---|---|---|---|---|"]
+        rows = cheese["rows"]
+        for scene in dict.fromkeys(r["scene"] for r in rows):
+            minus = next(r for r in rows if r["scene"] == scene and r["tree"] == "-")
+            plus = next(r for r in rows if r["scene"] == scene and r["tree"] == "+")
+            out.append(f"| {scene} | {plus['primitives']} | {fmt(plus.get('solid_fraction'), '.3f')} | "
+                       f"{fmt(plus.get('holes_crossed'), '.1f')} | {fmt(plus.get('mean_steps'), '.1f')} | "
+                       f"{fmt(plus.get('mrays_s'), '.2f')} | {fmt(minus.get('mean_steps'), '.1f')} | "
+                       f"{fmt(minus.get('mrays_s'), '.2f') if 'mrays_s' in minus else minus.get('note', '-')} |")
+        out.append("")
     tt = load("trace_throughput")
     if tt:
         out += ["## Kernel compile time", "",
@@ -103,13 +125,17 @@ def main():
         out += ["## Versus the mesh route", "",
                 f"`./run.sh bench mesh_route.py` (segments={mesh['args']['segments']}): manifold3d booleans, "
                 "Mitsuba scene build (Embree BVH), Embree primary rays at 1280x720, against optimize + CSG primary rays.",
+                "The last columns render one 1-spp frame of the command line's model scene (floor, sky, sun, "
+                "max_depth 6) both ways: `csg_path` on the CSG shape, Mitsuba's `path` with the mesh in its place.",
                 "", "| scene | prims | mesh triangles | booleans s | scene build s | Embree s/frame | optimize s | "
-                "CSG s/frame | CSG / Embree per frame | first frame: mesh s / CSG s |", "|---|---|---|---|---|---|---|---|---|---|"]
+                "CSG s/frame | CSG / Embree per frame | first frame: mesh s / CSG s | path s | csg_path s | "
+                "csg_path / path |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in mesh["rows"]:
             out.append(f"| {r['scene']} | {r['primitives']} | {r['triangles']} | {r['boolean_s']:.2f} | "
                        f"{r['scene_build_s']:.2f} | {r['embree_s']:.3f} | {r['csg_prepare_s']:.2f} | "
                        f"{r['csg_trace_s']:.3f} | {r['trace_ratio']:.1f} | {r['mesh_first_frame_s']:.2f} / "
-                       f"{r['csg_first_frame_s']:.2f} |")
+                       f"{r['csg_first_frame_s']:.2f} | {fmt(r.get('mesh_path_s'), '.2f')} | "
+                       f"{fmt(r.get('csg_path_s'), '.2f')} | {fmt(r.get('path_ratio'), '.1f')} |")
         out.append("")
     if mesh:
         worst = max(mesh["rows"], key=lambda r: r["trace_ratio"])
@@ -130,6 +156,19 @@ def main():
                 "instead is the boolean evaluation: the first frame costs "
                 f"{worst['mesh_first_frame_s']:.1f} s against {worst['csg_first_frame_s']:.1f} s for {worst['scene']}, "
                 "every edit of the model pays it again, and the mesh is only as exact as its tessellation.", ""]
+    leaves = load("mesh_leaves")
+    if leaves:
+        m = leaves["machine"]
+        out += ["## Mesh leaves", "",
+                f"`./run.sh bench mesh_leaves.py` ({m['date']}, `{m['variant']}`, 1280x720 primary rays): a lone "
+                "mesh leaf (a warped sphere, non-convex) against Embree on the same triangles, and the Cheese with "
+                "its spheres replaced by sphere meshes against the analytic Cheese, in one run.", "",
+                "| scene | CSG s/frame | Embree s/frame | CSG / Embree | vs sphere holes | steps/ray |",
+                "|---|---|---|---|---|---|"]
+        for r in leaves["rows"]:
+            out.append(f"| {r['scene']} | {r['csg_s']:.3f} | {fmt(r.get('embree_s'), '.3f')} | "
+                       f"{fmt(r.get('ratio'), '.1f')} | {fmt(r.get('vs_analytic'), '.2f')} | {r['mean_steps']:.1f} |")
+        out.append("")
     if (common.ROOT / "docs" / "images" / "scaling.png").exists():
         out += ["## Scaling", "", "`./run.sh bench scaling.py`: optimized trace time against primitive count "
                 "(640x360) and against image size (Cheese-1000).", "", "![scaling](images/scaling.png)", ""]
