@@ -18,7 +18,8 @@ or the colour's name for `color("red")`), `cube(size, center)`, `sphere(r | d)`,
 leaf), and 2D outlines extruded: `square`, `circle` (with OpenSCAD's `$fn`/`$fa`/`$fs`
 fragments), `polygon(points, paths)`, their 2D unions, differences, intersections and
 placements, under `linear_extrude(height, center, twist, slices, scale)` or
-`rotate_extrude(angle)`, as mesh leaves (`formats.openscad_2d`). The modifiers `#` (highlight)
+`rotate_extrude(angle)`, as mesh leaves (`formats.openscad_2d`); `hull()` and `minkowski()`
+(of convex operands) of OpenSCAD's faceted solids, as convex polyhedra. The modifiers `#` (highlight)
 and `!` (root: that subtree alone is the model, as in OpenSCAD) keep their subtree; `%`
 (background) and `*` (disabled) drop it. The 3D solids are the exact analytic ones, not
 OpenSCAD's `$fn`/`$fa`/`$fs` facets; a 2D circle is OpenSCAD's polygon, as OpenSCAD renders
@@ -34,8 +35,8 @@ operand. A model that ends up empty is a `FormatError`.
 
 Files are untrusted input: every problem is a `FormatError` (a `ModelError`) whose message
 starts with the file, line and column, e.g. `model.csg: line 3, column 5: sphere: r must be a
-finite number, got inf`. Unsupported nodes (`hull`, `minkowski`, `offset`, `text`,
-`import`, ...) are refused by name, or skipped with a warning when `on_unsupported="skip"`.
+finite number, got inf`. Unsupported nodes (`offset`, `text`, `import`, `resize`, ...) are
+refused by name, or skipped with a warning when `on_unsupported="skip"`.
 File size, statement count and nesting depth are bounded; parsing and evaluation use
 explicit stacks, never deep recursion.
 """
@@ -64,14 +65,13 @@ MAX_STATEMENTS = 10_000_000        # statements in one file
 
 SUPPORTED_NODES = ("group", "union", "render", "difference", "intersection", "multmatrix", "color",
                    "cube", "sphere", "cylinder", "polyhedron", "square", "circle", "polygon", "linear_extrude",
-                   "rotate_extrude")
+                   "rotate_extrude", "hull", "minkowski")
 UNSUPPORTED_NODES = {
     # 2D primitives and operations
     "text": "a 2D primitive", "import": "imported geometry", "projection": "a 2D operation",
     "offset": "a 2D operation", "roof": "a 2D-to-3D operation", "fill": "a 2D operation",
     # 3D nodes mitsuba-csg cannot represent exactly
-    "surface": "a height-map mesh", "minkowski": "a Minkowski sum", "hull": "a convex hull",
-    "resize": "a size-dependent transform",
+    "surface": "a height-map mesh", "resize": "a size-dependent transform",
 }
 
 __all__ = ["FormatError", "OpenSCADWarning", "load", "loads", "SUPPORTED_NODES", "UNSUPPORTED_NODES"]
@@ -362,7 +362,7 @@ _KNOWN_ARGS = {
     "difference": set(), "intersection": set(),
     "square": {"size", "center"}, "circle": {"r", "d"}, "polygon": {"points", "paths", "convexity"},
     "linear_extrude": {"height", "center", "convexity", "twist", "slices", "scale", "segments", "v"},
-    "rotate_extrude": {"angle", "convexity"},
+    "rotate_extrude": {"angle", "convexity"}, "hull": set(), "minkowski": {"convexity"},
 }
 _FACETS = {"$fn": 0.0, "$fs": 2.0, "$fa": 12.0}         # OpenSCAD's defaults
 
@@ -471,6 +471,8 @@ class _Evaluator:
         if name is None or name in ("group", "union", "render"):
             if name == "render":
                 self.arguments(st)
+                if not st.children:
+                    return EMPTY        # OpenSCAD: intersecting with an empty render() is empty (its issue 996)
             return self.combine(st, UNION, kids)
         if self.is_unsupported(st):
             what = UNSUPPORTED_NODES.get(name)
@@ -484,8 +486,17 @@ class _Evaluator:
         args = self.arguments(st)
         if name in ("difference", "intersection"):
             return self.combine(st, DIFFERENCE if name == "difference" else INTERSECTION, kids)
-        if name in ("linear_extrude", "rotate_extrude"):
-            return self.extrude(st, args, self.combine(st, UNION, kids, flat_context=True))
+        try:
+            if name == "hull":
+                return self.hull(st, kids)
+            if name == "minkowski":
+                return self.minkowski(st, kids)
+            if name in ("linear_extrude", "rotate_extrude"):
+                return self.extrude(st, args, self.combine(st, UNION, kids, flat_context=True))
+        except FormatError:
+            raise
+        except ModelError as e:
+            self.src.fail(st.pos, f"{name}: {e}")
         if name == "multmatrix":
             m = self.matrix(st, args)
             body = self.combine(st, UNION, kids)
@@ -539,6 +550,99 @@ class _Evaluator:
             return EMPTY
         return flat.combine(kind, [k for k in kids if k is not EMPTY])
 
+    # -- hull and minkowski: of OpenSCAD's faceted solids, as OpenSCAD computes them --
+    def hull(self, st, kids):
+        operands = [k for k in kids if not isinstance(k, _Nothing)]
+        if not operands:
+            return EMPTY            # as OpenSCAD: a hull of nothing is empty geometry, not no operand
+        if all(isinstance(k, flat.Shape2D) for k in operands):
+            return flat.hull_2d(operands)
+        return self.convex(st, self.subtree_points(st, "hull"))
+
+    def minkowski(self, st, kids):
+        operands = [k for k in kids if not isinstance(k, _Nothing)]
+        if not operands:
+            return EMPTY
+        if all(isinstance(k, flat.Shape2D) for k in operands):
+            sets = []
+            for k in operands:
+                polygons = k.section.to_polygons()
+                hull = flat.hull_2d([k])
+                if len(polygons) != 1 or abs(hull.section.area() - k.section.area()) > 1e-9 * hull.section.area():
+                    self.src.fail(st.pos, "minkowski: of 2D operands that are not convex is not supported")
+                sets.append(np.asarray(polygons[0], dtype=np.float64))
+            return flat.minkowski_2d_convex(sets)
+        sets = [self.subtree_points(c, "minkowski", convex=True) for c in st.children
+                if not _suppressed(c) and c.name not in ("echo", "assert")]
+        sets = [p for p in sets if len(p)]
+        total = sets[0]
+        for pts in sets[1:]:
+            total = (total[:, None, :] + pts[None, :, :]).reshape(-1, 3)
+            total = np.unique(np.round(total, 12), axis=0)
+        return self.convex(st, total)
+
+    def convex(self, st, points):
+        solid = flat.convex_solid(points) if len(points) >= 4 else None
+        if solid is None:
+            self.src.warn(st.pos, f"{st.name}: no volume; OpenSCAD makes nothing of it")
+            return EMPTY
+        return solid
+
+    def subtree_points(self, st, what: str, convex: bool = False) -> np.ndarray:
+        """World points of the OpenSCAD facets of a 3D subtree (its unions, placements, hulls
+        and primitives). With `convex`, the subtree must be one convex solid (a Minkowski
+        operand): a primitive or a hull under placements."""
+        out = []
+        stack = [(c, tf.IDENTITY) for c in st.children] if not convex else [(st, tf.IDENTITY)]
+        while stack:
+            node, m = stack.pop()
+            if _suppressed(node) or node.name in ("echo", "assert"):
+                continue
+            name = node.name
+            live = [c for c in node.children if not _suppressed(c)]
+            if name in (None, "group", "union", "render", "color", "multmatrix", "hull"):
+                if convex and name != "hull" and len(live) > 1:
+                    self.src.fail(node.pos, f"{what}: of a union of several solids is not supported "
+                                            "(only convex operands: primitives and hulls)")
+                if name == "multmatrix":
+                    m = m @ self.matrix(node, self.arguments(node))
+                if name == "hull":
+                    convex = False             # everything below is inside the hull's convex points
+                stack.extend((c, m) for c in live)
+            elif name in ("sphere", "cylinder", "cube", "polyhedron"):
+                pts = self.primitive_points(node, convex)
+                if len(pts):
+                    out.append(pts @ m[:3, :3].T + m[:3, 3])
+            else:
+                self.src.fail(node.pos, f"{what}: {name} inside it is not supported (unions, placements, hulls "
+                                        "and 3D primitives are)")
+        return np.vstack(out) if out else np.zeros((0, 3))
+
+    def primitive_points(self, st, convex: bool) -> np.ndarray:
+        args = self.arguments(st)
+        fn, fs, fa = self.facets(st)
+        if st.name == "sphere":
+            r = self.radius(st, args, "r", "d", 1.0)
+            return flat.sphere_points(r, fn, fs, fa) if r > 0 else np.zeros((0, 3))
+        if st.name == "cylinder":
+            h = self.number(st, args, "h", 1.0)
+            r = self.radius(st, args, "r", "d", 1.0)
+            r1, r2 = self.radius(st, args, "r1", "d1", r), self.radius(st, args, "r2", "d2", r)
+            if h <= 0 or r1 < 0 or r2 < 0 or (r1 == 0 and r2 == 0):
+                return np.zeros((0, 3))
+            return flat.cylinder_points(h, r1, r2, self.flag(st, args, "center"), fn, fs, fa)
+        if st.name == "cube":
+            solid = self.make_cube(st, args)
+            if isinstance(solid, _Nothing):
+                return np.zeros((0, 3))
+            return flat.cube_points(solid.size, self.flag(st, args, "center"))
+        solid = self.make_polyhedron(st, args)
+        if isinstance(solid, _Nothing):
+            return np.zeros((0, 3))
+        if convex and not isinstance(solid, ConvexPolyhedron):
+            self.src.fail(st.pos, "minkowski: of a non-convex polyhedron is not supported")
+        return np.array(args["points"][0], dtype=np.float64)
+
     def facets(self, st) -> tuple[float, float, float]:
         """($fn, $fs, $fa) of a statement (the .csg export writes them on every round node)."""
         found = dict(_FACETS)
@@ -553,7 +657,7 @@ class _Evaluator:
 
     def extrude(self, st, args, body):
         if isinstance(body, _Nothing):
-            return body
+            return EMPTY            # an extrusion of nothing is empty geometry (OpenSCAD's issue 996)
         if not isinstance(body, flat.Shape2D):
             self.src.fail(st.pos, f"{st.name}: its children must be 2D (square, circle, polygon, ...)")
         if flat.is_empty(body):

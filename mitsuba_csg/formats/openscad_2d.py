@@ -115,3 +115,66 @@ def rotate_extrude(shape: Shape2D, angle: float, fn: float, fs: float, fa: float
     if angle < 0:
         solid = solid.mirror((0.0, 1.0, 0.0))
     return Mesh.from_manifold(solid)
+
+
+# ---- OpenSCAD's facets of 3D primitives, for hull() and minkowski() ----
+# OpenSCAD computes hulls and Minkowski sums of its faceted solids; their vertices are what
+# matters for convex operands, so only the points are built here.
+
+def circle_points(r: float, n: int) -> np.ndarray:
+    phi = 2.0 * np.pi * np.arange(n) / n
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi)])
+
+
+def sphere_points(r: float, fn: float, fs: float, fa: float) -> np.ndarray:
+    """OpenSCAD's sphere: (fragments + 1) // 2 rings at polar angles pi (i + 1/2) / rings."""
+    n = fragments(r, fn, fs, fa)
+    rings = (n + 1) // 2
+    polar = np.pi * (np.arange(rings) + 0.5) / rings
+    return np.vstack([np.column_stack([circle_points(r * math.sin(p), n), np.full(n, r * math.cos(p))])
+                      for p in polar])
+
+
+def cylinder_points(h: float, r1: float, r2: float, center: bool, fn: float, fs: float, fa: float) -> np.ndarray:
+    n = fragments(max(r1, r2), fn, fs, fa)
+    z0 = -0.5 * h if center else 0.0
+    ends = []
+    for r, z in ((r1, z0), (r2, z0 + h)):
+        ends.append(np.array([[0.0, 0.0, z]]) if r == 0 else np.column_stack([circle_points(r, n), np.full(n, z)]))
+    return np.vstack(ends)
+
+
+def cube_points(size, center: bool) -> np.ndarray:
+    corners = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)]) * np.asarray(size)
+    return corners - 0.5 * np.asarray(size) if center else corners
+
+
+def convex_solid(points: np.ndarray):
+    """The convex hull of points as a ConvexPolyhedron (a Mesh beyond its plane limit)."""
+    import manifold3d as m3
+
+    from ..model.polyhedra import convex_planes
+    from ..model.primitives import ConvexPolyhedron
+    hull = m3.Manifold.hull_points(np.ascontiguousarray(points, dtype=np.float64))
+    if hull.is_empty() or hull.volume() <= 0:
+        return None
+    mesh = hull.to_mesh64()
+    verts = np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3]
+    tris = np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3)
+    planes, problem = convex_planes(verts, [list(t[::-1]) for t in tris])
+    if problem is None and len(planes) <= ConvexPolyhedron.MAX_PLANES:
+        return ConvexPolyhedron(planes)
+    return Mesh.from_manifold(hull)
+
+
+def hull_2d(shapes: list[Shape2D]) -> Shape2D:
+    import manifold3d as m3
+    return Shape2D(m3.CrossSection.batch_hull([s.section for s in shapes]))
+
+
+def minkowski_2d_convex(point_sets: list[np.ndarray]) -> Shape2D:
+    import manifold3d as m3
+    total = point_sets[0]
+    for pts in point_sets[1:]:
+        total = (total[:, None, :] + pts[None, :, :]).reshape(-1, 2)
+    return Shape2D(m3.CrossSection.hull_points(np.ascontiguousarray(total)))

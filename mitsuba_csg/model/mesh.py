@@ -45,9 +45,10 @@ def _checked(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
         bad = int(np.flatnonzero((f < 0).any(1) | (f >= len(v)).any(1))[0])
         raise ModelError(f"{name}.faces: triangle {bad} refers to vertex {f[bad].tolist()}, "
                          f"but there are {len(v)} vertices")
-    # Degenerate triangles (repeated or collinear vertices) bound nothing: drop them.
-    area2 = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    f = f[area2 > 1e-14 * max(1.0, float(np.abs(v).max())) ** 2]
+    # A triangle with a repeated vertex bounds nothing, and dropping it keeps the surface
+    # closed (its two edges cancel). Slivers of three distinct collinear vertices stay: their
+    # edges are shared with their neighbours, and the ray test never hits them.
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
     if len(f) > MAX_TRIANGLES:
         raise ModelError(f"{name}: {len(f)} triangles; a mesh leaf holds at most {MAX_TRIANGLES}")
     if len(f) < 4:
@@ -85,7 +86,7 @@ def _check_closed(f, name: str) -> None:
 class Mesh(Primitive):
     """A closed, consistently oriented triangle mesh (outward normals by the right-hand rule).
 
-    `vertices` is (N, 3), `faces` (M, 3) vertex indices. Degenerate triangles are dropped; a
+    `vertices` is (N, 3), `faces` (M, 3) vertex indices. Triangles with a repeated vertex are dropped; a
     mesh oriented inward is flipped with a `MeshOrientationWarning`; an open, non-manifold or
     inconsistently oriented mesh, or one without volume, is a `ModelError` naming the edge.
     """
@@ -102,8 +103,15 @@ class Mesh(Primitive):
     @classmethod
     def from_manifold(cls, manifold, *, material: str | None = None) -> "Mesh":
         """The triangles of a `manifold3d.Manifold` (its first three vertex properties)."""
-        mesh = manifold.to_mesh()
-        return cls(np.asarray(mesh.vert_properties)[:, :3], np.asarray(mesh.tri_verts), material=material)
+        mesh = manifold.to_mesh64()
+        vertices = np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3]
+        faces = np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3)
+        try:
+            return cls(vertices, faces, material=material)
+        except ModelError:
+            # manifold3d may keep copies of a vertex (property seams): weld them by position.
+            vertices, inverse = np.unique(vertices, axis=0, return_inverse=True)
+            return cls(vertices, inverse.reshape(-1)[faces], material=material)
 
     def canonical(self):
         # The mesh is its own canonical solid; the kernel reads its triangles and BVH.
