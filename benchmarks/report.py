@@ -24,6 +24,13 @@ def fmt(v, spec):
     return "-" if v is None else format(v, spec)
 
 
+def by_scene(rows):
+    """(scene, input-tree row, optimized row) of trace_throughput.py's rows, in their order."""
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        yield (scene, next(r for r in rows if r["scene"] == scene and r["tree"] == "-"),
+               next(r for r in rows if r["scene"] == scene and r["tree"] == "+"))
+
+
 def main():
     out = ["# Benchmarks", "",
            "Numbers from the scripts in `benchmarks/` (each prints a table and writes JSON to "
@@ -48,10 +55,7 @@ def main():
                 "| scene | prims | depth - / + | fps - | fps + | Mrays/s + | steps/ray + | +/- | path 1spp s | "
                 "GTX 680 fps - / + (paper) |",
                 "|---|---|---|---|---|---|---|---|---|---|"]
-        rows = t2["rows"]
-        for scene in dict.fromkeys(r["scene"] for r in rows):
-            minus = next(r for r in rows if r["scene"] == scene and r["tree"] == "-")
-            plus = next(r for r in rows if r["scene"] == scene and r["tree"] == "+")
+        for scene, minus, plus in by_scene(t2["rows"]):
             paper = PAPER_GTX680.get(scene, (None, None))
             out.append(f"| {scene} | {plus['primitives']} | {minus['depth']} / {plus['depth']} | "
                        f"{fmt(minus.get('fps'), '.2f') if 'fps' in minus else minus.get('note', '-')} | "
@@ -72,10 +76,7 @@ def main():
                 "(`benchmarks/cheese_statistics.py`, float64, from the generator's holes).", "",
                 "| scene | prims | solid | holes/ray | steps/ray + | Mrays/s + | steps/ray - | Mrays/s - |",
                 "|---|---|---|---|---|---|---|---|"]
-        rows = cheese["rows"]
-        for scene in dict.fromkeys(r["scene"] for r in rows):
-            minus = next(r for r in rows if r["scene"] == scene and r["tree"] == "-")
-            plus = next(r for r in rows if r["scene"] == scene and r["tree"] == "+")
+        for scene, minus, plus in by_scene(cheese["rows"]):
             out.append(f"| {scene} | {plus['primitives']} | {fmt(plus.get('solid_fraction'), '.3f')} | "
                        f"{fmt(plus.get('holes_crossed'), '.1f')} | {fmt(plus.get('mean_steps'), '.1f')} | "
                        f"{fmt(plus.get('mrays_s'), '.2f')} | {fmt(minus.get('mean_steps'), '.1f')} | "

@@ -679,30 +679,26 @@ class _Evaluator:
             return EMPTY
         twist = self.number(st, args, "twist", 0.0)
         slices = self.number(st, args, "slices", None)
-        scale = [1.0, 1.0]
-        if "scale" in args and args["scale"][0] is not None:
-            value, pos = args["scale"]
-            if isinstance(value, float) and not isinstance(value, bool):
-                scale = [value, value]
-            elif isinstance(value, list) and len(value) == 2 and all(isinstance(x, float) for x in value):
-                scale = list(value)
-            else:
-                self.src.fail(pos, f"linear_extrude: scale must be a number or [sx, sy], got {_show(value)}")
-            if not all(math.isfinite(x) and x >= 0 for x in scale):
-                self.src.fail(pos, f"linear_extrude: scale must be finite and >= 0, got {_show(value)}")
+        scale = self.pair(st, args, "scale", "[sx, sy]")
+        if not all(math.isfinite(x) and x >= 0 for x in scale):
+            self.src.fail(args["scale"][1], f"linear_extrude: scale must be finite and >= 0, got {_show(scale)}")
         return flat.linear_extrude(body, height, self.flag(st, args, "center"), twist,
                                    None if slices is None else max(1, int(slices)), scale, fn, fs, fa)
 
+    def pair(self, st, args, key: str, shape: str) -> list[float]:
+        """A 2D argument given as one number or as two: [1, 1] when absent."""
+        if key not in args or args[key][0] is None:
+            return [1.0, 1.0]
+        value, pos = args[key]
+        if isinstance(value, float) and not isinstance(value, bool):
+            return [value, value]
+        if isinstance(value, list) and len(value) == 2 and \
+                all(isinstance(x, float) and not isinstance(x, bool) for x in value):
+            return list(value)
+        self.src.fail(pos, f"{st.name}: {key} must be a number or {shape}, got {_show(value)}")
+
     def make_square(self, st, args):
-        size = [1.0, 1.0]
-        if "size" in args and args["size"][0] is not None:
-            value, pos = args["size"]
-            if isinstance(value, float) and not isinstance(value, bool):
-                size = [value, value]
-            elif isinstance(value, list) and len(value) == 2 and all(isinstance(x, float) for x in value):
-                size = list(value)
-            else:
-                self.src.fail(pos, f"square: size must be a number or [x, y], got {_show(value)}")
+        size = self.pair(st, args, "size", "[x, y]")
         if not all(math.isfinite(x) for x in size) or min(size) <= 0:
             self.src.warn(st.pos, f"square: size {_show(size)} has no area; OpenSCAD makes nothing of it")
             return EMPTY
