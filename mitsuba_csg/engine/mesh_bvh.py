@@ -34,8 +34,32 @@ class MeshBVH:
         return len(self.right)
 
 
+def _sah_split(ids, centroid, t_lower, t_upper):
+    """(axis, ids in split order, left count) minimizing the surface area heuristic over the
+    three axes' centroid orders (area(left) * n_left + area(right) * n_right)."""
+    best = None
+    n = len(ids)
+    for axis in range(3):
+        order = ids[np.argsort(centroid[ids, axis], kind="stable")]
+        lo, hi = t_lower[order], t_upper[order]
+        left = _areas(np.minimum.accumulate(lo), np.maximum.accumulate(hi))
+        right = _areas(np.minimum.accumulate(lo[::-1])[::-1], np.maximum.accumulate(hi[::-1])[::-1])
+        k = np.arange(1, n)
+        cost = left[:-1] * k + right[1:] * (n - k)
+        i = int(np.argmin(cost))
+        if best is None or cost[i] < best[0]:
+            best = (cost[i], axis, order, i + 1)
+    return best[1], best[2], best[3]
+
+
+def _areas(lower, upper):
+    e = upper - lower
+    return e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]
+
+
 def build(vertices: np.ndarray, faces: np.ndarray) -> MeshBVH:
-    """Median-split BVH over triangle centroids along the longest centroid axis."""
+    """SAH BVH over triangle boxes (centroid orders); median splits deep down, so that no
+    path is longer than the kernel's stack."""
     tri = vertices[faces]                                  # (T, 3, 3)
     centroid = tri.mean(axis=1)
     t_lower, t_upper = tri.min(axis=1), tri.max(axis=1)
@@ -55,13 +79,17 @@ def build(vertices: np.ndarray, faces: np.ndarray) -> MeshBVH:
         else:
             if depth >= STACK_SIZE - 1:
                 raise ValueError("mesh BVH deeper than the kernel's stack")
-            c = centroid[ids]
-            axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
+            halvings = int(np.ceil(np.log2(max(1.0, (end - start) / LEAF_SIZE))))
+            if depth + halvings + 1 < STACK_SIZE - 1:
+                axis, order[start:end], mid = _sah_split(ids, centroid, t_lower, t_upper)
+            else:                           # median splits always finish within the stack
+                c = centroid[ids]
+                axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
+                mid = (end - start) // 2
+                order[start:end] = ids[np.argpartition(c[:, axis], mid)]
             split.append(axis)
             first.append(0)
             count.append(0)
-            mid = (end - start) // 2
-            order[start:end] = ids[np.argpartition(c[:, axis], mid)]
             emit(start, start + mid, depth + 1)
             right[index] = len(right)
             emit(start + mid, end, depth + 1)
