@@ -14,7 +14,7 @@ import argparse
 import numpy as np
 
 import common
-from mesh_route import embree_primary
+from mesh_route import embree_primary, mitsuba_mesh
 from trace_throughput import measure, rays_for
 
 
@@ -59,7 +59,7 @@ def main(argv=None):
     lone = csg.Mesh.from_manifold(manifold)
     o, d = rays_for(lone, width, height)
     timing, info = measure(csg.prepare(lone), o, d, args.repeats)
-    embree = embree_primary(manifold, o, d, args.repeats)
+    embree = embree_primary(mitsuba_mesh(manifold), o, d, args.repeats)
     rows.append(dict(scene=f"lone mesh ({len(lone.faces)} tris)", csg_s=timing["min_s"], embree_s=embree,
                      ratio=timing["min_s"] / embree, **info))
     print(f"  {rows[-1]['scene']} done", flush=True)

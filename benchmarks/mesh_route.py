@@ -38,11 +38,11 @@ def mitsuba_mesh(manifold):
     return mesh
 
 
-def embree_primary(manifold, o, d, repeats, mesh=None) -> float:
-    """Best seconds of Embree primary rays (t, normal, primitive) on the mesh of `manifold`."""
+def embree_primary(mesh, o, d, repeats) -> float:
+    """Best seconds of Embree primary rays (t, normal, primitive) on a Mitsuba mesh."""
     import drjit as dr
     import mitsuba as mi
-    scene = mi.load_dict({"type": "scene", "mesh": mesh if mesh is not None else mitsuba_mesh(manifold)})
+    scene = mi.load_dict({"type": "scene", "mesh": mesh})
     ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, i].astype(np.float32)) for i in range(3))),
                    mi.Vector3f(*(mi.Float(d[:, i].astype(np.float32)) for i in range(3))))
     dr.eval(ray)
@@ -62,7 +62,7 @@ def mesh_route(model, o, d, segments, repeats):
     t0 = time.perf_counter()
     mesh = mitsuba_mesh(manifold)
     build_s = time.perf_counter() - t0
-    embree_s = embree_primary(manifold, o, d, repeats, mesh)
+    embree_s = embree_primary(mesh, o, d, repeats)
     return mesh, dict(triangles=manifold.num_tri(), boolean_s=boolean_s, scene_build_s=build_s, embree_s=embree_s)
 
 

@@ -594,6 +594,15 @@ def _stl_scene(path):
     return mi.load_dict({"type": "scene", "m": shape}), volume, area
 
 
+def _aimed_rays(rng, lo, hi, n):
+    """n rays from a sphere around the box [lo, hi] towards uniform points inside it (unit d)."""
+    centre, radius = 0.5 * (lo + hi), 1.5 * float(np.linalg.norm(hi - lo))
+    o = rng.normal(size=(n, 3))
+    o = centre + o * (radius / np.linalg.norm(o, axis=1, keepdims=True))
+    d = rng.uniform(lo, hi, size=(n, 3)) - o
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
 def _mesh_hits(scene, o, d):
     import mitsuba as mi
     ray = mi.Ray3f(mi.Point3f(*np.ascontiguousarray(o.T, np.float32)),
@@ -619,11 +628,7 @@ def test_example_agrees_with_openscad_stl(rel, tmp_path):
 
     rng = np.random.default_rng(7)
     n = 2000
-    centre, radius = 0.5 * (lo + hi), 1.5 * float(np.linalg.norm(hi - lo))
-    o = rng.normal(size=(n, 3))
-    o = centre + o * (radius / np.linalg.norm(o, axis=1, keepdims=True))
-    d = rng.uniform(lo, hi, size=(n, 3)) - o
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o, d = _aimed_rays(rng, lo, hi, n)
     hits = csg.trace(model, o, d)
     t_exact = hits.t.astype(np.float64)
     # Skip rays near silhouettes and edges: jittered copies must see the same thing.
@@ -749,11 +754,7 @@ def test_real_model_agrees_with_openscad_round_mesh(rel, fine_exports):
     size = float(np.max(hi - lo))
     rng = np.random.default_rng(7)
     n = 4000
-    centre, radius = 0.5 * (lo + hi), 1.5 * float(np.linalg.norm(hi - lo))
-    o = rng.normal(size=(n, 3))
-    o = centre + o * (radius / np.linalg.norm(o, axis=1, keepdims=True))
-    d = rng.uniform(lo, hi, size=(n, 3)) - o
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o, d = _aimed_rays(rng, lo, hi, n)
     # And six orthographic views along the axes, as renders of holes are: 1000 rays each.
     views_o, views_d = [], []
     for axis, sign in itertools.product(range(3), (1.0, -1.0)):

@@ -95,10 +95,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     if height > MAX_STACK:
         raise TreeTooDeepError(f"the CSG tree is {height} operations deep; the kernel allows {MAX_STACK}. "
                                "Optimize it (csg.optimize) or restructure it.")
-    # Pad boxes outwards so float32 rounding never culls a hit on the box boundary.
-    with np.errstate(invalid="ignore", over="ignore"):
-        pad = 1e-5 * (upper - lower) + 1e-6 * np.maximum(np.abs(lower), np.abs(upper)) + 1e-30
-    pad = np.where(np.isfinite(pad) & (upper >= lower), pad, 0.0)
+    pad = _box_pad(lower, upper)
     # An empty box (lower > upper on some axis: the dummy leaf, an intersection of disjoint
     # boxes) is stored as NaN: every slab comparison with NaN is false, so the box test
     # rejects it. The slab test alone accepts many empty boxes.
@@ -117,7 +114,8 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     is_mesh = flat.prim_shape == K.MESH
     prim_record[is_mesh, K.PRIM_PARAMS:K.PRIM_PARAMS + 2] = flat.prim_param[is_mesh].astype(np.uint32).view(np.float32)
     planes = flat.planes if len(flat.planes) else np.zeros((1, 4))
-    triangles = flat.triangles if flat.triangles is not None and len(flat.triangles) else np.zeros((1, 12))
+    triangles = flat.triangles if flat.triangles is not None and len(flat.triangles) else \
+        np.zeros((1, K.TRIANGLE_FLOATS))
     mesh_nodes = _mesh_node_records(flat)
     n_nodes = len(kind)
     root_corners = np.abs(np.concatenate([lower[root], upper[root]]))
@@ -137,13 +135,19 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         has_meshes=bool(np.any(flat.prim_shape == K.MESH)), options=options or TraversalOptions())
 
 
+def _box_pad(lower, upper):
+    """How far to widen boxes (tree nodes, mesh BVH nodes) so that float32 rounding never
+    culls a hit on the box boundary; 0 for empty or infinite boxes."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        pad = 1e-5 * (upper - lower) + 1e-6 * np.maximum(np.abs(lower), np.abs(upper)) + 1e-30
+    return np.where(np.isfinite(pad) & (upper >= lower), pad, 0.0)
+
+
 def _mesh_node_records(flat: FlatTree) -> np.ndarray:
     """(K, 8) float32 mesh BVH node records (one dummy record when there are no meshes)."""
     if flat.mesh_right is None or not len(flat.mesh_right):
         return np.zeros((1, K.MESH_NODE_FLOATS), np.float32)
-    # Pad outwards as for the tree's boxes, so float32 rounding never culls a triangle.
-    extent = np.maximum(np.abs(flat.mesh_lower), np.abs(flat.mesh_upper))
-    pad = 1e-5 * (flat.mesh_upper - flat.mesh_lower) + 1e-6 * extent + 1e-30
+    pad = _box_pad(flat.mesh_lower, flat.mesh_upper)
     record = np.zeros((len(flat.mesh_right), K.MESH_NODE_FLOATS), np.float32)
     record[:, 0:3] = flat.mesh_lower - pad
     record[:, 4:7] = flat.mesh_upper + pad

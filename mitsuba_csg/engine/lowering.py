@@ -53,7 +53,7 @@ class FlatTree:
     planes: np.ndarray = None   # (Q, 4) canonical unit-normal planes of convex primitives and mesh triangles
     plane_vertices: dict = field(default_factory=dict)  # plane start -> canonical vertices
     # Mesh leaves (engine.mesh_bvh): triangles parallel to `planes` (zero rows for convex
-    # planes), and all meshes' BVH nodes; a mesh primitive's params are its root node (twice).
+    # planes), and all meshes' BVH nodes; a mesh primitive's first param is its root node.
     triangles: np.ndarray = None    # (Q, 12)
     mesh_lower: np.ndarray = None   # (K, 3) node boxes, canonical frame
     mesh_upper: np.ndarray = None
@@ -193,7 +193,7 @@ def primitive_tree(prims) -> FlatTree:
     plane_start = np.zeros(n, np.int64)
     plane_count = np.zeros(n, np.int64)
     plane_sets: dict[int, tuple[int, np.ndarray]] = {}   # id(planes array) -> (start, vertices)
-    mesh_sets: dict[int, tuple[int, int, int]] = {}       # id(faces array) -> (plane start, root, end)
+    mesh_sets: dict[int, tuple[int, int]] = {}            # id(faces array) -> (plane start, root)
     plane_chunks, triangle_chunks, bvhs, n_planes, n_mesh_nodes = [], [], [], 0, 0
     materials = []
     for i, (prim, matrix, material) in enumerate(prims):
@@ -206,26 +206,26 @@ def primitive_tree(prims) -> FlatTree:
             key = id(prim.faces)
             if key not in mesh_sets:
                 bvh = mesh_bvh.build(prim.vertices, prim.faces)
-                mesh_sets[key] = (n_planes, n_mesh_nodes, n_mesh_nodes + bvh.num_nodes)
+                mesh_sets[key] = (n_planes, n_mesh_nodes)
                 plane_sets[key] = (n_planes, prim.vertices)
                 plane_chunks.append(bvh.planes)
                 triangle_chunks.append(bvh.triangles)
                 bvhs.append((n_mesh_nodes, bvh))
                 n_planes += len(bvh.planes)
                 n_mesh_nodes += bvh.num_nodes
-            plane_start[i], root, _ = mesh_sets[key]
-            param[i] = (root, root)
+            plane_start[i], root = mesh_sets[key]
+            param[i] = (root, 0)
         elif planes is not None:
             key = id(planes)
             if key not in plane_sets:
                 plane_sets[key] = (n_planes, prim.vertices)
                 plane_chunks.append(planes)
-                triangle_chunks.append(np.zeros((len(planes), 12)))
+                triangle_chunks.append(np.zeros((len(planes), K.TRIANGLE_FLOATS)))
                 n_planes += len(planes)
             plane_start[i] = plane_sets[key][0]
             plane_count[i] = len(planes)
     planes = np.vstack(plane_chunks) if plane_chunks else np.zeros((0, 4))
-    triangles = np.vstack(triangle_chunks) if triangle_chunks else np.zeros((0, 12))
+    triangles = np.vstack(triangle_chunks) if triangle_chunks else np.zeros((0, K.TRIANGLE_FLOATS))
     vertices = dict(plane_sets.values())
     mesh = _mesh_nodes(bvhs)
     to_canonical = np.linalg.inv(to_world)[:, :3, :]

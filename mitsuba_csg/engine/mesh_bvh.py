@@ -3,9 +3,9 @@
 Nodes are stored in depth-first order (an inner node's left child is the next node) with the
 index of the right child and the split axis, so the kernel visits the child nearer along
 the ray first and keeps the other on a small per-lane stack: the nearest crossing found
-early culls the boxes behind it. Each triangle is stored with its vertices sorted by vertex index, so that the edge
-functions of an edge shared by two triangles are computed from the same operands in the same
-order, hence equal and opposite bit for bit (the watertight test, `engine.shapes`): a ray
+early culls the boxes behind it. Each triangle is stored with its vertices sorted by vertex
+index, so that the edge functions of an edge shared by two triangles are computed from the
+same operands in the same order, hence equal and opposite bit for bit (the watertight test, `engine.shapes`): a ray
 through an edge or a vertex is never missed. A parity flag says whether the sorted order
 reverses the triangle's orientation.
 """

@@ -10,8 +10,8 @@ Faces: sphere 0; box 2*axis + (1 on the + side); cone 0 side, 1 bottom, 2 top; t
 convex polyhedron: the plane's index within the primitive; mesh: the triangle's index in
 BVH order (its plane is plane start + face, as for a convex polyhedron).
 
-A mesh is not convex: its first crossing after t_start comes from a stackless walk of its
-BVH (`engine.mesh_bvh`) with a watertight ray/triangle test, and its class from the side
+A mesh is not convex: its first crossing after t_start comes from a walk of its BVH
+(`engine.mesh_bvh`, near child first) with a watertight ray/triangle test, and its class from the side
 the ray crosses from. Crossings within `skip` of t_start are the event at t_start seen
 again through a neighbouring triangle (an edge or vertex hit: float32 t differs by ulps
 between the triangles), so they are not events.
@@ -158,7 +158,7 @@ def _convex(b, o, d, param, plane_buf, start, count):
     return near, far, near_face, far_face, near_normal, far_normal
 
 
-# ---- Mesh: stackless BVH walk, watertight triangle test (Woop, Benthin and Wald 2013) ----
+# ---- Mesh: ordered BVH walk, watertight triangle test (Woop, Benthin and Wald 2013) ----
 
 _NO_NODE = 0xFFFFFFFF
 
@@ -182,6 +182,7 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
     kx, ky = dr.select(swap, ky, kx), dr.select(swap, kx, ky)
     dz = _pick(d, kz)
     sx, sy, sz = _pick(d, kx) / dz, _pick(d, ky) / dz, 1.0 / dz
+    ox, oy, oz = _pick(o, kx), _pick(o, ky), _pick(o, kz)
     inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
 
     node = b.UInt32(root)                          # next node to visit, or NO_NODE
@@ -202,13 +203,10 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
             vc = dr.gather(b.Array4f, triangles, row + 2, testing)
             # Projected vertices relative to the origin, each computed the same way in every
             # triangle that shares it.
-            az, bz, cz = _pick(va, kz) - _pick(o, kz), _pick(vb, kz) - _pick(o, kz), _pick(vc, kz) - _pick(o, kz)
-            ax = _pick(va, kx) - _pick(o, kx) - sx * az
-            ay = _pick(va, ky) - _pick(o, ky) - sy * az
-            bx = _pick(vb, kx) - _pick(o, kx) - sx * bz
-            by = _pick(vb, ky) - _pick(o, ky) - sy * bz
-            cx = _pick(vc, kx) - _pick(o, kx) - sx * cz
-            cy = _pick(vc, ky) - _pick(o, ky) - sy * cz
+            az, bz, cz = _pick(va, kz) - oz, _pick(vb, kz) - oz, _pick(vc, kz) - oz
+            ax, ay = _pick(va, kx) - ox - sx * az, _pick(va, ky) - oy - sy * az
+            bx, by = _pick(vb, kx) - ox - sx * bz, _pick(vb, ky) - oy - sy * bz
+            cx, cy = _pick(vc, kx) - ox - sx * cz, _pick(vc, ky) - oy - sy * cz
             # Edge functions of the edges (a, b), (a, c), (b, c), lower vertex index first: a
             # shared edge gives the same value, negated, in both of its triangles.
             e_ab = ax * by - ay * bx

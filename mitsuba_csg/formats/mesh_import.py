@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model.mesh import Mesh
+from ..model.mesh import Mesh, weld
 from ..errors import ModelError
 from .reading import FormatError, read_model_bytes
 
@@ -29,12 +29,6 @@ def load(path, **options) -> Mesh:
         return Mesh(vertices, faces)
     except ModelError as e:
         raise FormatError(f"{source}: {e}") from e
-
-
-def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Merge vertices with identical positions."""
-    unique, inverse = np.unique(vertices, axis=0, return_inverse=True)
-    return unique, inverse.reshape(-1)[faces]
 
 
 def _read_with_mitsuba(path: str, kind: str):

@@ -593,9 +593,11 @@ class _Evaluator:
         and primitives). With `convex`, the subtree must be one convex solid (a Minkowski
         operand): a primitive or a hull under placements."""
         out = []
-        stack = [(c, tf.IDENTITY) for c in st.children] if not convex else [(st, tf.IDENTITY)]
+        # Each entry says whether its subtree must still be one convex solid: below a hull,
+        # everything is inside the hull's convex points.
+        stack = [(c, tf.IDENTITY, False) for c in st.children] if not convex else [(st, tf.IDENTITY, True)]
         while stack:
-            node, m = stack.pop()
+            node, m, convex = stack.pop()
             if _suppressed(node) or node.name in ("echo", "assert"):
                 continue
             name = node.name
@@ -606,9 +608,7 @@ class _Evaluator:
                                             "(only convex operands: primitives and hulls)")
                 if name == "multmatrix":
                     m = m @ self.matrix(node, self.arguments(node))
-                if name == "hull":
-                    convex = False             # everything below is inside the hull's convex points
-                stack.extend((c, m) for c in live)
+                stack.extend((c, m, convex and name != "hull") for c in live)
             elif name in ("sphere", "cylinder", "cube", "polyhedron"):
                 pts = self.primitive_points(node, convex)
                 if len(pts):

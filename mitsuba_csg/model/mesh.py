@@ -23,6 +23,12 @@ class MeshOrientationWarning(UserWarning):
     """An inside-out mesh was flipped."""
 
 
+def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge vertices with identical positions (faces re-indexed)."""
+    unique, inverse = np.unique(vertices, axis=0, return_inverse=True)
+    return unique, inverse.reshape(-1)[faces]
+
+
 def _checked(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
@@ -110,8 +116,7 @@ class Mesh(Primitive):
             return cls(vertices, faces, material=material)
         except ModelError:
             # manifold3d may keep copies of a vertex (property seams): weld them by position.
-            vertices, inverse = np.unique(vertices, axis=0, return_inverse=True)
-            return cls(vertices, inverse.reshape(-1)[faces], material=material)
+            return cls(*weld(vertices, faces), material=material)
 
     def canonical(self):
         # The mesh is its own canonical solid; the kernel reads its triangles and BVH.

@@ -14,7 +14,7 @@ import numpy as np
 from ...errors import ModelError
 from ...model import values
 from ...model.construct import frustum_chunk, inner_cone, phi_cut, theta_cut
-from ...model.mesh import Mesh
+from ...model.mesh import Mesh, weld
 from ...model.nodes import Node, Operation
 from ...model.polyhedra import hull_planes
 from ...model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Sphere, Torus
@@ -381,7 +381,6 @@ class Solids:
         return self._mesh(el, np.vstack(rings), np.vstack(faces))
 
     def _mesh(self, el, vertices, faces):
-        from ..mesh_import import weld
         vertices, faces = weld(vertices, faces)
         try:
             return Mesh(vertices, faces)
