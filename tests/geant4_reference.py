@@ -13,6 +13,11 @@ in mm):
   no solid holds the ray (touching solids hand the ray on); for an outside
   origin, the smallest `DistanceToIn` (inf for a miss).
 
+Files with replicated, divided or parameterised volumes are answered by Geant4's navigator
+instead (`answer_by_navigation`), which places those copies by itself. Where RAYS.npz also
+holds `points`, OUT.npz gets `level`: the placement depth of the deepest volume holding
+each point, which sees daughters that the union of the placed solids hides.
+
 Nothing here shares code with mitsuba-csg.
 """
 from __future__ import annotations
@@ -46,21 +51,27 @@ def _matrix(g4, pv):
 
 
 def placed_solids(g4, world):
-    """(solid, local -> world matrix, world box lo, hi) of every volume placed below the world."""
+    """(solid, local -> world matrix, world box lo, hi) of every volume placed below the world
+    (the world itself when nothing is placed in it)."""
     out, stack = [], [(world.GetLogicalVolume(), np.eye(4))]
     lo, hi = g4.G4ThreeVector(), g4.G4ThreeVector()
+
+    def add(solid, m):
+        g4.G4VSolid.BoundingLimits(solid, lo, hi)
+        corners = np.array([[x, y, z, 1.0] for x in (lo.x, hi.x) for y in (lo.y, hi.y) for z in (lo.z, hi.z)])
+        world_corners = (corners @ m.T)[:, :3]
+        out.append((solid, m, np.linalg.inv(m), world_corners.min(0), world_corners.max(0)))
+
     while stack:
         lv, to_world = stack.pop()
         for i in range(lv.GetNoDaughters()):
             pv = lv.GetDaughter(i)
             m = to_world @ _matrix(g4, pv)
             child = pv.GetLogicalVolume()
-            solid = child.GetSolid()
-            g4.G4VSolid.BoundingLimits(solid, lo, hi)
-            corners = np.array([[x, y, z, 1.0] for x in (lo.x, hi.x) for y in (lo.y, hi.y) for z in (lo.z, hi.z)])
-            world_corners = (corners @ m.T)[:, :3]
-            out.append((solid, m, np.linalg.inv(m), world_corners.min(0), world_corners.max(0)))
+            add(child.GetSolid(), m)
             stack.append((child, m))
+    if not out:
+        add(world.GetLogicalVolume().GetSolid(), np.eye(4))
     return out
 
 
@@ -111,6 +122,71 @@ def answer(g4, solids, o, d):
     return inside, t
 
 
+def has_copies(world) -> bool:
+    """Whether some volume is replicated, divided or parameterised (one physical volume, many copies)."""
+    stack = [world.GetLogicalVolume()]
+    while stack:
+        lv = stack.pop()
+        for i in range(lv.GetNoDaughters()):
+            pv = lv.GetDaughter(i)
+            if pv.IsReplicated():
+                return True
+            stack.append(pv.GetLogicalVolume())
+    return False
+
+
+def answer_by_navigation(g4, world, o, d):
+    """The same answers from Geant4's navigator, which places every copy of replicated,
+    divided and parameterised volumes itself: a point is inside when it is located in a
+    volume below the world; a ray is followed from boundary to boundary until it leaves
+    (or, from outside, first enters) that union."""
+    V = g4.G4ThreeVector
+    g4.G4GeometryManager.GetInstance().CloseGeometry(False, False, world)
+    nav = g4.G4Navigator()
+    nav.SetWorldVolume(world)
+    world_lv = world.GetLogicalVolume().GetName()
+
+    def below_world(pv):
+        return pv is not None and pv.GetLogicalVolume().GetName() != world_lv
+
+    n = len(o)
+    inside, t = np.zeros(n, bool), np.full(n, np.inf)
+    for i in range(n):
+        dv = V(*d[i])
+        pv = nav.LocateGlobalPointAndSetup(V(*o[i]), dv, False, False)
+        inside[i] = below_world(pv)
+        total = 0.0
+        for _ in range(MAX_HANDOVERS):
+            step = nav.ComputeStep(V(*(o[i] + total * d[i])), dv, 1e99, 0.0)
+            if step >= G4_INFINITY:
+                total = np.inf
+                break
+            total += step
+            nav.SetGeometricallyLimitedStep()
+            pv = nav.LocateGlobalPointAndSetup(V(*(o[i] + total * d[i])), dv, True, False)
+            if pv is None:                       # left the world
+                total = np.inf if not inside[i] else total
+                break
+            if below_world(pv) != inside[i]:
+                break
+        t[i] = total
+    return inside, t
+
+
+def levels(g4, world, points):
+    """How many placement levels below the world the deepest volume holding each point lies
+    (0: the world or outside it), as Geant4's navigator locates it."""
+    V = g4.G4ThreeVector
+    g4.G4GeometryManager.GetInstance().CloseGeometry(False, False, world)
+    nav = g4.G4Navigator()
+    nav.SetWorldVolume(world)
+    out = np.zeros(len(points), dtype=np.int64)
+    for i, p in enumerate(points):
+        if nav.LocateGlobalPointAndSetup(V(*p), None, False, True) is not None:
+            out[i] = nav.CreateTouchableHistory().GetHistoryDepth()
+    return out
+
+
 def _geometry_only(path, tmp):
     """The file without optical property tables and surfaces, which Geant4 without its data
     sets fails to read ("basic_string: construction from null"); the geometry is unchanged."""
@@ -119,9 +195,12 @@ def _geometry_only(path, tmp):
     if "<matrix" not in text and "surface" not in text:
         return path
     root = ET.fromstring(text)
+    # Matrices that only property tables use go too; others may hold geometry (m[i,j]).
+    tables = {el.get("ref") for el in root.iter("property")}
     for parent in root.iter():
         for child in list(parent):
-            if child.tag in ("matrix", "property", "opticalsurface", "skinsurface", "bordersurface"):
+            if child.tag in ("property", "opticalsurface", "skinsurface", "bordersurface") or (
+                    child.tag == "matrix" and child.get("name") in tables):
                 parent.remove(child)
     stripped = os.path.join(tmp, os.path.basename(path))
     ET.ElementTree(root).write(stripped, encoding="utf-8", xml_declaration=True)
@@ -134,10 +213,14 @@ def main(argv):
     parser = g4.G4GDMLParser()
     parser.SetOverlapCheck(False)
     parser.Read(_geometry_only(path, os.path.dirname(os.path.abspath(out))), False)   # False: no schema fetch
-    solids = placed_solids(g4, parser.GetWorldVolume())
+    world = parser.GetWorldVolume()
     data = np.load(rays)
-    inside, t = answer(g4, solids, data["o"].astype(float), data["d"].astype(float))
-    np.savez(out, inside=inside, t=t)
+    o, d = data["o"].astype(float), data["d"].astype(float)
+    if has_copies(world):
+        inside, t = answer_by_navigation(g4, world, o, d)
+    else:
+        inside, t = answer(g4, placed_solids(g4, world), o, d)
+    np.savez(out, inside=inside, t=t, level=levels(g4, world, data["points"]) if "points" in data else [])
 
 
 if __name__ == "__main__":

@@ -95,6 +95,133 @@ def test_evaluator_whitelist():
             r.evaluate(bad)
 
 
+def test_leading_zeros_matrices_and_brackets():
+    r = Expressions()
+    assert r.evaluate("005") == 5.0                   # CLHEP reads leading zeros as decimals
+    assert r.evaluate("1e05 + 2.005 + 0.5 + 0") == pytest.approx(1e5 + 2.505)
+    r.define_matrix("m", 3, [1, 2, 3, 4, 5, 6])       # two rows of three: m_<row>_<col>
+    r.define_matrix("v", 1, [7, 8, 9])                # a column: v_<i>
+    r.scalars["i"] = 2.0
+    assert r.evaluate("m[2,3] + m[1,i] + v[i+1]") == 6 + 2 + 9   # indices count from 1
+    for bad in ("m[1", "m]1[", "m[1.5,1]", "m[3,1]"):
+        with pytest.raises(FormatError):
+            r.evaluate(bad)
+    m = solid('<box name="S" x="k[2]" y="k[3]*2" z="1"/>',
+              define='<matrix name="k" coldim="1" values="1 2*mm 3"/>')
+    assert m.size == pytest.approx((2.0, 6.0, 1.0))
+
+
+LOOPS = """<solids><box name="WorldBox" x="1" y="1" z="1" lunit="m"/>
+  <loop for="i" from="1" to="n" step="1"><loop for="j" from="1" to="2" step="1">
+    <box name="B[i][j]" x="i" y="j" z="0.5"/></loop></loop></solids>
+<structure>
+  <loop for="i" from="1" to="n" step="1"><loop for="j" from="1" to="2" step="1">
+    <volume name="v[i][j]"><materialref ref="Fe"/><solidref ref="B[i][j]"/></volume></loop></loop>
+  <volume name="World"><materialref ref="G4_AIR"/><solidref ref="WorldBox"/>
+    <loop for="i" from="1" to="n" step="1"><loop for="j" from="1" to="2" step="1">
+      <physvol><volumeref ref="v[i][j]"/><position name="p[i][j]" x="10*i" y="10*j"/></physvol>
+    </loop></loop>
+    <physvol><volumeref ref="v_0_0"/><position name="q" z="i*100"/></physvol>
+  </volume></structure>"""
+
+
+def loops_doc(define='<variable name="i" value="7"/><variable name="j" value="0"/><constant name="n" value="3"/>',
+              body=LOOPS):
+    return (f'<?xml version="1.0"?><gdml><define>{define}</define><materials/>{body}'
+            '<setup name="Default" version="1.0"><world ref="World"/></setup></gdml>')
+
+
+def test_loops_repeat_their_contents_as_geant4_reads_them():
+    m = gdml.loads(loops_doc(), "loops.gdml")
+    leaves = m.leaves()
+    assert len(leaves) == 3 * 2 + 1
+    # Box B[i][j] (named B_<i-1>_<j-1>) is i by j mm, placed at (10 i, 10 j)
+    centres = [np.round(tf_offset(leaf), 6) for leaf in leaves[:6]]
+    assert [tuple(c) for c in centres] == [(10 * i, 10 * j, 0) for i in (1, 2, 3) for j in (1, 2)]
+    assert [tuple(leaf.size) for leaf in leaves[:6]] == [(i, j, 0.5) for i in (1, 2, 3) for j in (1, 2)]
+    # after the loops the variable has its own value again (7): z = 700
+    assert tuple(np.round(tf_offset(leaves[6]), 6)) == (0, 0, 700)
+
+
+def tf_offset(leaf):
+    return leaf.matrix[:3, 3]
+
+
+def test_bad_loops_each_raise_one_clear_error():
+    body = LOOPS
+    # Names are solved only inside loops (Geant4's GenerateName): outside, v[1][1] is a literal.
+    _expect(loops_doc(body=body.replace('<volumeref ref="v_0_0"/>', '<volumeref ref="v[1][1]"/>')),
+            "undefined volume 'v\\[1\\]\\[1\\]'")
+    _expect(loops_doc(define='<constant name="i" value="0"/><variable name="j" value="0"/>'
+                             '<constant name="n" value="3"/>'), r"<loop>: for='i': the loop variable must be")
+    _expect(loops_doc(body=body.replace('to="n" step="1"', 'to="n" step="0"', 1)), "endless loop")
+    _expect(loops_doc(body=body.replace('from="1" to="n"', 'from="1.5" to="n"', 1)), "must have a whole value")
+    _expect(loops_doc(body=body.replace('<loop for="j" from="1" to="2" step="1">\n    <box',
+                                        '<loop for="i" from="1" to="2" step="1">\n    <box', 1)),
+            "the variable of an enclosing loop")
+    big = body.replace('to="n"', 'to="1000000"', 1)
+    _expect(loops_doc(body=big), "loops make more than")
+
+
+def test_copies_place_their_volume_many_times(tmp_path):
+    vols = ('<volume name="c"><materialref ref="Cu"/><solidref ref="Small"/></volume>'
+            '<volume name="row"><materialref ref="Fe"/><solidref ref="Row"/>{}</volume>')
+    row = '<box name="Row" x="4" y="1" z="1"/>' + BAR
+    replica = ('<replicavol number="4"><volumeref ref="c"/><replicate_along_axis><direction x="1"/>'
+               '<width value="1" unit="mm"/><offset value="0" unit="mm"/></replicate_along_axis></replicavol>')
+    m = gdml.loads(world('<physvol><volumeref ref="row"/></physvol>', vols.format(replica), row), "r.gdml")
+    assert [tuple(np.round(leaf.matrix[:3, 3], 9)) for leaf in m.leaves()[1:]] == \
+        [(-1.5, 0, 0), (-0.5, 0, 0), (0.5, 0, 0), (1.5, 0, 0)]
+    division = '<divisionvol axis="kXAxis" number="2" offset="1" unit="mm"><volumeref ref="c"/></divisionvol>'
+    m = gdml.loads(world('<physvol><volumeref ref="row"/></physvol>', vols.format(division), row), "d.gdml")
+    # two slices of (4 - 1) / 2 = 1.5 mm from x = -2 + 1: centres -0.25 and 1.25, the mother's other sides
+    assert [(tuple(np.round(leaf.matrix[:3, 3], 9)), tuple(leaf.size)) for leaf in m.leaves()[1:]] == \
+        [((-0.25, 0, 0), (1.5, 1, 1)), ((1.25, 0, 0), (1.5, 1, 1))]
+    params = ('<paramvol ncopies="2"><volumeref ref="c"/><parameterised_position_size>'
+              '<parameters number="1"><position name="p1" x="-1"/><box_dimensions x="1" y="0.5" z="0.5"/></parameters>'
+              '<parameters number="2"><position name="p2" x="1"/><rotation name="r2" z="90" unit="deg"/>'
+              '<tube_dimensions InR="0" OutR="0.4" hz="1" DeltaPhi="360" aunit="deg"/></parameters>'
+              '</parameterised_position_size></paramvol>')
+    path = tmp_path / "p.gdml"
+    path.write_text(world('<physvol><volumeref ref="row"/></physvol>', vols.format(params), row))
+    placed = gdml.volumes(path)
+    assert [level for _, level in placed] == [1, 2, 2]
+    m = csg.union(*[node for node, level in placed if level == 2])     # the copies, without their mother
+    assert list(inside(m, [[-1.45, 0, 0], [-0.9, 0.3, 0], [1.0, 0.35, 0.45], [1.0, 0.45, 0]])) == \
+        [True, False, True, False]
+    for bad, pattern in ((replica.replace('x="1"/>', 'rho="1"/>'), "radial replicas"),
+                         (division.replace("kXAxis", "kPhi"), "division of a <box> along kPhi"),
+                         (params.replace('ncopies="2"', 'ncopies="3"'), "ncopies=3 but 2"),
+                         (params.replace("box_dimensions", "hype_dimensions"), "<hype_dimensions> is not supported"),
+                         (replica.replace('number="4"', 'number="-1"'), "number: expected 0..")):
+        _expect(world('<physvol><volumeref ref="row"/></physvol>', vols.format(bad), row), pattern)
+
+
+def test_simple_extension_root_and_colours():
+    text = doc("").replace("<gdml ", "<gdml_simple_extension ", 1).replace("</gdml>", "</gdml_simple_extension>")
+    text = text.replace("<define>", '<extension><color name="red" R="1" G="0" B="0" A="1"/></extension><define>')
+    m = gdml.loads(text, "ext.gdml")          # a world alone: shown (as a file of one volume is that volume)
+    assert [leaf.material for leaf in m.leaves()] == ["G4_AIR"]
+    _expect(text.replace('R="1"', 'R="2"'), r"<color name=\"red\">: colour components must lie in \[0, 1\]")
+    with pytest.raises(FormatError, match="nothing to show"):
+        gdml.loads(text, "ext.gdml", show_world=False)
+
+
+def test_inconsistent_facets_are_turned_to_agree():
+    from mitsuba_csg.model.mesh import orient_consistently, signed_volume
+    box = csg.to_mesh(csg.Box((2, 3, 4))).to_mesh()
+    v, f = np.asarray(box.vert_properties)[:, :3], np.asarray(box.tri_verts).astype(np.int64)
+    rng = np.random.default_rng(3)
+    flipped = f.copy()
+    turn = rng.random(len(f)) < 0.5
+    flipped[turn] = flipped[turn][:, ::-1]
+    fixed, turned = orient_consistently(flipped)
+    assert turned
+    assert abs(signed_volume(v, fixed)) == pytest.approx(24.0)
+    csg.Mesh(v, fixed if signed_volume(v, fixed) > 0 else fixed[:, ::-1])     # closed, consistent
+    assert not orient_consistently(f)[1]
+
+
 # ---- Solids against analytic ray distances ----
 
 def test_box_and_orb():

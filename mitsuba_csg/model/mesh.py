@@ -29,6 +29,51 @@ def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return unique, inverse.reshape(-1)[faces]
 
 
+def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The volume a closed mesh encloses, negative when its triangles face inward."""
+    v, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces)
+    return float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0)
+
+
+def orient_consistently(faces: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Faces turned so that neighbours agree (each edge used once in each direction), and
+    whether any was turned. Formats whose readers accept facets in either order (Geant4's
+    tessellated solids) need this; the result's outside is then fixed by `Mesh`'s volume sign.
+    Edges not shared by exactly two faces are left for `Mesh` to report."""
+    f = np.asarray(faces, dtype=np.int64).copy()
+    m = len(f)
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    owner = np.tile(np.arange(m), 3)
+    key = np.sort(edges, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    key, owner, edges = key[order], owner[order], edges[order]
+    pair = np.flatnonzero(np.all(key[1:] == key[:-1], axis=1))
+    neighbours: list[list[tuple[int, bool]]] = [[] for _ in range(m)]
+    for k in pair:
+        if (k > 0 and np.all(key[k - 1] == key[k])) or (k + 2 < len(key) and np.all(key[k + 2] == key[k])):
+            continue                       # more than two faces at the edge
+        a, b = int(owner[k]), int(owner[k + 1])
+        same = bool(edges[k, 0] == edges[k + 1, 0])     # both use the edge in the same direction
+        neighbours[a].append((b, same))
+        neighbours[b].append((a, same))
+    flip = np.zeros(m, dtype=bool)
+    seen = np.zeros(m, dtype=bool)
+    for start in range(m):
+        if seen[start]:
+            continue
+        seen[start] = True
+        queue = [start]
+        while queue:
+            a = queue.pop()
+            for b, same in neighbours[a]:
+                if not seen[b]:
+                    seen[b] = True
+                    flip[b] = flip[a] ^ same
+                    queue.append(b)
+    f[flip] = f[flip][:, ::-1]
+    return f, bool(flip.any())
+
+
 def _checked(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
@@ -60,7 +105,7 @@ def _checked(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
     if len(f) < 4:
         raise ModelError(f"{name}: fewer than 4 non-degenerate triangles; a closed solid needs at least 4")
     _check_closed(f, name)
-    volume = float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0)
+    volume = signed_volume(v, f)
     scale = float(np.ptp(v, axis=0).max()) ** 3
     if abs(volume) <= 1e-12 * scale:
         raise ModelError(f"{name}: the mesh encloses no volume")

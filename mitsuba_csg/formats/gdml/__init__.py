@@ -1,12 +1,12 @@
 """Geant4 GDML files (`.gdml`): defines, solids, structure and setup as a CSG model.
 
-    load(path, *, solid=None, depth=None, show_world=False, on_unsupported="error") -> Node
+    load(path, *, solid=None, depth=None, show_world=None, on_unsupported="error") -> Node
     loads(text, source="<string>", *, base_dir=None, **same) -> Node
 
 Output units are **millimetres** (Geant4's internal length unit); angles are read in radians
 unless `aunit`/`unit` says otherwise. Without `solid`, the result is the placed scene: the
-union of every placed logical volume below the world (the world itself only with
-`show_world=True`), each one its GDML solid moved to its world placement and named with its
+union of every placed logical volume below the world (the world itself with `show_world=True`,
+or by default when nothing is placed in it: a file of one volume shows that volume), each one its GDML solid moved to its world placement and named with its
 material (the `materialref`, with Geant4's `0x...` pointer suffix stripped). Daughters are not
 subtracted from their mothers: for opaque rendering the outermost level is what one sees, so
 `depth=k` keeps the volumes at most k placement levels below the world (the world's daughters
@@ -16,7 +16,7 @@ places it, as in Geant4). `solid="name"` gives one GDML solid in its own frame, 
 What is read
 ------------
 * `<define>`: constant, variable, quantity, expression (scalars, in document order as Geant4
-  evaluates them), position, rotation, scale; `matrix` is ignored. Attribute values are
+  evaluates them), position, rotation, scale, matrix (elements as `m[i,j]`). Attribute values are
   arithmetic over numbers, defined scalars, units (mm cm m km um nm angstrom deg rad mrad ...),
   pi/e, `+ - * / ^` and sin cos tan asin acos atan atan2 sqrt exp log log10 pow abs min max;
   evaluated by a whitelisted `ast` walker, never `eval`.
@@ -25,9 +25,11 @@ What is read
   intersection, multiUnion, scaledSolid; tessellated and xtru as triangle-mesh leaves. Phi segments are intersections with (or, above 180 degrees,
   subtractions of) convex wedges; rmin holes are subtracted cones/spheres/tori extended past
   the caps so no faces coincide; theta cuts are cones with their apex at the centre.
+* `<loop>`s (`loops`), and volumes placed many times by one element: replicavol,
+  divisionvol, paramvol (`replicas`), expanded into copies as Geant4 places them.
 * Not representable exactly by our primitives: arb8, twisted*, hype,
   paraboloid, genericPolycone, genericPolyhedra, reflectedSolid, opticalsurface-bound solids,
-  replicavol/paramvol/divisionvol, loops and `physvol file=`. `on_unsupported="error"` raises a
+  and `physvol file=`. `on_unsupported="error"` raises a
   FormatError naming the element and its name; `"skip"` warns (UserWarning) and leaves the solid
   out, together with every boolean built from it and every volume made of it.
 
@@ -58,10 +60,10 @@ from ..reading import FormatError, read_model_bytes
 from .document import Document
 from .expressions import UNITS
 from .solids import Solids
-from .structure import scene
+from .structure import placed_volumes, scene
 from .xml_reader import MAX_FILE_BYTES, parse_xml
 
-__all__ = ["FormatError", "UNITS", "load", "loads"]
+__all__ = ["FormatError", "UNITS", "load", "loads", "volumes"]
 
 # ---- Entry points ----
 
@@ -76,7 +78,7 @@ def _check_options(depth, on_unsupported, source):
 
 
 def loads(text, source: str = "<string>", *, base_dir: str | None = None, solid: str | None = None,
-          depth: int | None = None, show_world: bool = False, on_unsupported: str = "error") -> Node:
+          depth: int | None = None, show_world: bool | None = None, on_unsupported: str = "error") -> Node:
     """Read a GDML document from a string or bytes; see the module docstring. Lengths in mm."""
     _check_options(depth, on_unsupported, source)
     data = text.encode("utf-8") if isinstance(text, str) else bytes(text)
@@ -97,9 +99,22 @@ def loads(text, source: str = "<string>", *, base_dir: str | None = None, solid:
     return scene(doc, solids, depth, show_world)
 
 
-def load(path, *, solid: str | None = None, depth: int | None = None, show_world: bool = False,
+def volumes(path, *, depth: int | None = None, show_world: bool | None = None,
+            on_unsupported: str = "error") -> list[tuple[Node, int]]:
+    """The placed volumes of a GDML file one by one, each with its placement level (the world's
+    daughters are level 1): what `load` unites, for per-level work such as hiding mothers."""
+    path = os.fspath(path)
+    _check_options(depth, on_unsupported, path)
+    data, _ = read_model_bytes(path, MAX_FILE_BYTES)
+    source = os.path.basename(path) or path
+    root, lines = parse_xml(data, source, os.path.dirname(os.path.abspath(path)))
+    doc = Document(root, lines, source, on_unsupported)
+    return placed_volumes(doc, Solids(doc), depth, show_world)
+
+
+def load(path, *, solid: str | None = None, depth: int | None = None, show_world: bool | None = None,
          on_unsupported: str = "error") -> Node:
-    """Read a GDML file: the placed scene (world hidden), or with `solid=` one solid in its own frame.
+    """Read a GDML file: the placed scene (world hidden unless it is all there is), or with `solid=` one solid in its own frame.
 
     Lengths are in mm. `depth` keeps placed volumes at most that many levels below the world;
     `on_unsupported` is "error" (FormatError) or "skip" (warn and leave the solid out).

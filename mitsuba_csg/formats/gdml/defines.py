@@ -51,6 +51,8 @@ def read_defines(doc, section):
             except FormatError as e:
                 value = e if str(e).startswith(doc.source) else FormatError(f"{doc.where(el)}: {e}")
             doc.expressions.scalars[name] = value
+            if tag == "variable":
+                doc.variables.add(name)
         elif tag in doc.vectors:
             name = el.get("name")
             if not name:
@@ -59,9 +61,27 @@ def read_defines(doc, section):
                 doc.fail(el, f"{tag} {name!r} is defined twice")
             doc.vectors[tag][name] = el
         elif tag == "matrix":
-            pass
+            _read_matrix(doc, el)
         else:
             doc.fail(el, f"unknown define element <{tag}>")
+
+
+def _read_matrix(doc, el):
+    """A <matrix>'s elements become constants (`m[i,j]` in expressions). Optical property
+    tables are matrices too: a value that fails to evaluate is an error only where it is used."""
+    name = el.get("name")
+    if not name or not re.match(r"^[A-Za-z_][A-Za-z0-9_]*$", name):
+        doc.fail(el, f"a matrix needs a name made of letters, digits and '_', got {name!r}")
+    words = (el.get("values") or "").split()
+    coldim = el.get("coldim", "1")
+    try:
+        coldim_value = doc.expressions.integer(coldim)
+        values = [doc.expressions.evaluate(w) for w in words]
+        doc.expressions.define_matrix(name, coldim_value, values)
+    except FormatError as e:
+        deferred = FormatError(f"{doc.where(el)}: {e}")
+        for k in range(len(words)):
+            doc.expressions.scalars.setdefault(f"{name}_{k}", deferred)
 
 
 def vector(doc, el, kind: str) -> np.ndarray:

@@ -10,6 +10,11 @@ import xml.etree.ElementTree as ET
 from ..reading import FormatError
 from .defines import read_defines
 from .expressions import Expressions, short
+from .loops import expand_loops
+
+# Geant4's simple-extension schema (examples G03, CaTS) wraps GDML in another root element
+# and adds an <extension> section of named colours, referenced by <colorref> in volumes.
+ROOTS = ("gdml", "gdml_simple_extension")
 
 
 class Document:
@@ -23,11 +28,15 @@ class Document:
         self.solid_elements: dict[str, ET.Element] = {}
         self.volumes: dict[str, ET.Element] = {}
         self.assemblies: dict[str, ET.Element] = {}
+        self.variables: set[str] = set()          # names of <variable>s: only they may be loop variables
+        self.colours: dict[str, tuple[float, ...]] = {}   # <extension> colours: name -> (R, G, B, A)
         self.warned: set[str] = set()
-        if root.tag != "gdml":
+        if root.tag not in ROOTS:
             raise FormatError(f"{source}: line {lines.get(id(root), 1)}: the root element is <{root.tag}>, "
                               f"expected <gdml>")
         for section in root:
+            if section.tag in ("define", "solids", "structure"):
+                expand_loops(self, section)
             if section.tag == "define":
                 read_defines(self, section)
             elif section.tag == "solids":
@@ -39,11 +48,12 @@ class Document:
                         self.register(self.volumes, el, "volume")
                     elif el.tag == "assembly":
                         self.register(self.assemblies, el, "assembly")
-                    elif el.tag in ("skinsurface", "bordersurface", "loop"):
-                        if el.tag == "loop":
-                            self.unsupported(el, "<loop> is not supported")
+                    elif el.tag in ("skinsurface", "bordersurface"):
+                        pass
                     else:
                         self.fail(el, f"unknown structure element <{el.tag}>")
+            elif section.tag == "extension":
+                self._read_colours(section)
             elif section.tag in ("materials", "setup", "userinfo"):
                 pass
             else:
@@ -51,6 +61,17 @@ class Document:
                                    f"structure, setup")
         for name in self.volumes.keys() & self.assemblies.keys():
             self.fail(self.assemblies[name], f"the name {name!r} is used by a volume and an assembly")
+
+    def _read_colours(self, section):
+        for el in section:
+            if el.tag != "color":
+                continue
+            if not el.get("name"):
+                self.fail(el, "a color needs a name attribute")
+            rgba = tuple(self.number(el, c, 1.0 if c == "A" else None) for c in "RGBA")
+            if not all(0.0 <= c <= 1.0 for c in rgba):
+                self.fail(el, f"colour components must lie in [0, 1], got {list(rgba)}")
+            self.colours[el.get("name")] = rgba
 
     def where(self, el) -> str:
         line = self.lines.get(id(el))

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ast
 import math
+import re
 
 from ..reading import FormatError
 
@@ -46,6 +47,11 @@ _FUNCTIONS = {
 }
 
 
+# CLHEP's evaluator reads integers with leading zeros ("005") as decimals; Python's parser
+# refuses them. Zeros after a letter, digit, '_' or '.' (names, 1e05, 2.005) are left alone.
+_LEADING_ZEROS = re.compile(r"(?<![\w.])0+(?=\d)")
+
+
 def short(text: str, limit: int = 60) -> str:
     """`text` on one line, cut to `limit` characters, for messages."""
     text = " ".join(str(text).split())
@@ -67,8 +73,10 @@ class Expressions:
             raise FormatError(f"expression longer than {MAX_EXPRESSION_CHARS} characters")
         if "**" in s:
             raise FormatError(f"bad expression {short(s)!r}: '**' is not GDML; use '^'")
+        if "[" in s or "]" in s:
+            s = self.solve_brackets(s)
         try:
-            tree = ast.parse(s.replace("^", "**"), mode="eval")
+            tree = ast.parse(_LEADING_ZEROS.sub("", s).replace("^", "**"), mode="eval")
         except (SyntaxError, ValueError, RecursionError, MemoryError, OverflowError):
             raise FormatError(f"bad expression {short(s)!r}") from None
         try:
@@ -125,6 +133,40 @@ class Expressions:
                 raise FormatError(f"{node.func.id}(...) is not finite")
             return r
         raise FormatError(f"{type(node).__name__} is not allowed in an expression")
+
+    def integer(self, text: str) -> int:
+        """An expression that must have a whole value (loop bounds, matrix indices)."""
+        value = self.evaluate(text)
+        if value != int(value):
+            raise FormatError(f"{short(text)!r} must have a whole value, got {value:g}")
+        return int(value)
+
+    def solve_brackets(self, text: str) -> str:
+        """Geant4's `SolveBrackets`: `m[i,j]` names the element `m_<i-1>_<j-1>`, each index an
+        integer expression counted from 1 (matrix elements; names generated inside loops)."""
+        out, pos = [], 0
+        while True:
+            open_ = text.find("[", pos)
+            close = text.find("]", pos)
+            if open_ < 0 and close < 0:
+                return "".join(out) + text[pos:]
+            if open_ < 0 or close < open_ or "[" in text[open_ + 1:close]:
+                raise FormatError(f"bracket mismatch in {short(text)!r}")
+            out.append(text[pos:open_])
+            for index in text[open_ + 1:close].split(","):
+                out.append(f"_{self.integer(index) - 1}")
+            pos = close + 1
+
+    def define_matrix(self, name: str, coldim: int, values: list[float]):
+        """A <matrix>'s elements as constants, named as Geant4's `DefineMatrix` names them."""
+        if not values or coldim < 1 or len(values) % coldim:
+            raise FormatError(f"matrix {name!r}: {len(values)} values do not fill rows of {coldim}")
+        if coldim == 1 or coldim == len(values):
+            for i, v in enumerate(values):
+                self.scalars[f"{name}_{i}"] = v
+        else:
+            for k, v in enumerate(values):
+                self.scalars[f"{name}_{k // coldim}_{k % coldim}"] = v
 
     def lookup(self, name: str) -> float:
         if name in self.scalars:

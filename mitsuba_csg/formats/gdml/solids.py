@@ -7,6 +7,7 @@ coincide; theta cuts are cones with their apex at the centre (`model.construct`)
 from __future__ import annotations
 
 import math
+import warnings
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -14,7 +15,7 @@ import numpy as np
 from ...errors import ModelError
 from ...model import values
 from ...model.construct import frustum_chunk, inner_cone, phi_cut, theta_cut
-from ...model.mesh import Mesh, weld
+from ...model.mesh import Mesh, orient_consistently, signed_volume, weld
 from ...model.nodes import Node, Operation
 from ...model.polyhedra import hull_planes
 from ...model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Sphere, Torus
@@ -88,6 +89,10 @@ class Solids:
             visiting.discard(current)
             self.solids[current] = self._build(el)
         return self.solids[name]
+
+    def build(self, el) -> Node | None:
+        """A solid element that refers to no other solid (a parameterised copy's dimensions)."""
+        return self._build(el)
 
     def _build(self, el) -> Node | None:
         tag = el.tag
@@ -352,7 +357,15 @@ class Solids:
                 corners.append([points[0], points[2], points[3]])
         if not corners:
             self.doc.fail(el, "a <tessellated> solid needs facets")
-        return self._mesh(el, np.array(corners).reshape(-1, 3), np.arange(3 * len(corners)).reshape(-1, 3))
+        vertices, faces = weld(np.array(corners).reshape(-1, 3), np.arange(3 * len(corners)).reshape(-1, 3))
+        # Geant4 takes facets in either order (G4TessellatedSolid finds its outside by itself).
+        faces, turned = orient_consistently(faces)
+        if turned:
+            warnings.warn(f"{self.doc.where(el)}: facets are not all counter-clockwise seen from outside; "
+                          f"turned them to agree with their neighbours", UserWarning, stacklevel=2)
+            if signed_volume(vertices, faces) < 0:
+                faces = faces[:, ::-1]
+        return self._mesh(el, vertices, faces)
 
     def _solid_xtru(self, el):
         """A polygon swept through z sections, each scaled and offset (G4ExtrudedSolid)."""

@@ -13,9 +13,11 @@ from ...model import transform as tf
 from ...model.nodes import Node, Operation
 from ..reading import FormatError
 from .defines import affine, placement, rotation_matrix
+from .replicas import division_copies, parameterised_copies, replica_copies
 
 MAX_PLACEMENTS = 2_000_000         # placed volumes in the scene
 MAX_VOLUME_DEPTH = 10_000          # placement levels
+_PLACING = ("physvol", "replicavol", "paramvol", "divisionvol")
 
 
 def world_name(doc) -> tuple[str, ET.Element]:
@@ -36,39 +38,47 @@ def _ref(doc, el, tag) -> tuple[ET.Element, str]:
     return child, child.get("ref")
 
 
-def scene(doc, solids, depth: int | None, show_world: bool) -> Node:
+def scene(doc, solids, depth: int | None, show_world: bool | None) -> Node:
+    """The union of the placed volumes."""
+    placed = [node for node, _ in placed_volumes(doc, solids, depth, show_world)]
+    return placed[0] if len(placed) == 1 else Operation("union", placed)
+
+
+def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> list[tuple[Node, int]]:
+    """Every placed volume (its solid in world coordinates) with its placement level, in a
+    depth-first pre-order walk (the world is level 0)."""
     world, world_el = world_name(doc)
     if world not in doc.volumes:
         doc.fail(world_el, f"refers to undefined volume {world!r}" +
                  (" (an assembly cannot be the world)" if world in doc.assemblies else ""))
-    placed: list[Node] = []
+    if show_world is None:
+        # A file of one volume (a phantom's organ, a test box) is that volume.
+        show_world = not any(child.tag in _PLACING for child in doc.volumes[world])
+    placed: list[tuple[Node, int]] = []
     count = 0
-    # (element, world matrix, depth, ancestors) ; assemblies are expanded at the placing level
-    stack = [(doc.volumes[world], tf.IDENTITY, 0, (world,))]
+    # (element, world matrix, depth, ancestors, the copy's own solid or None); assemblies are
+    # expanded at the placing level
+    stack = [(doc.volumes[world], tf.IDENTITY, 0, (world,), None)]
     while stack:
-        vol, matrix, level, ancestors = stack.pop()
+        vol, matrix, level, ancestors, own_solid = stack.pop()
         is_assembly = vol.tag == "assembly"
         if not is_assembly and (level > 0 or show_world):
-            node = _volume_solid(doc, solids, vol)
+            node = _volume_solid(doc, solids, vol, own_solid)
             if node is not None:
-                placed.append(node if matrix is tf.IDENTITY else node.transform(matrix))
+                placed.append((node if matrix is tf.IDENTITY else node.transform(matrix), level))
         child_level = level if is_assembly else level + 1
         if depth is not None and child_level > depth:
             continue
         children = []
         for pv in vol:
-            if pv.tag in ("replicavol", "paramvol", "divisionvol", "loop"):
-                # A <loop> of placements left out silently would be a wrong image.
-                doc.unsupported(pv, f"<{pv.tag}> is not supported")
-                continue
-            if pv.tag != "physvol":
+            if pv.tag not in _PLACING:
                 continue
             if pv.find("file") is not None:
                 doc.unsupported(pv, "<physvol> with <file> (an external GDML file) is not supported")
                 continue
             ref_el, ref = _ref(doc, pv, "volumeref")
             target = doc.volumes.get(ref)
-            if target is None:
+            if target is None and pv.tag == "physvol":
                 target = doc.assemblies.get(ref)
             if target is None:
                 doc.fail(ref_el, f"refers to undefined volume {ref!r}")
@@ -76,25 +86,37 @@ def scene(doc, solids, depth: int | None, show_world: bool) -> Node:
                 doc.fail(pv, f"volume placement cycle: {' -> '.join(ancestors[ancestors.index(ref):] + (ref,))}")
             if len(ancestors) > MAX_VOLUME_DEPTH:
                 doc.fail(pv, f"placements nested more than {MAX_VOLUME_DEPTH} deep")
-            count += 1
+            copies = _copies(doc, solids, vol, pv)
+            count += len(copies)
             if count > MAX_PLACEMENTS:
                 doc.fail(pv, f"more than {MAX_PLACEMENTS} placed volumes")
-            t, r, s = placement(doc, pv)
-            if np.any(s == 0):
-                doc.fail(pv, f"scale factors must be non-zero, got {s.tolist()}")
-            # G4GDMLReadStructure::PhysvolRead: G4Transform3D(R.inverse(), t) * G4Scale3D(s).
-            local = affine(rotation_matrix(r).T @ np.diag(s), t)
-            children.append((target, tf.compose(matrix, _frozen(local)), child_level, ancestors + (ref,)))
+            children.extend((target, tf.compose(matrix, _frozen(local)), child_level, ancestors + (ref,), solid)
+                            for local, solid in copies)
         stack.extend(reversed(children))   # popped in document order: a depth-first pre-order walk
     if not placed:
         raise FormatError(f"{doc.source}: nothing to show: no placed volume "
                           f"{'at all' if show_world else 'below the world (show_world=True shows the world)'}")
-    return placed[0] if len(placed) == 1 else Operation("union", placed)
+    return placed
 
 
-def _volume_solid(doc, solids, vol) -> Node | None:
+def _copies(doc, solids, vol, pv) -> list[tuple[np.ndarray, Node | None]]:
+    """(placement in the mother, the copy's own solid or None) of each copy `pv` places."""
+    if pv.tag == "replicavol":
+        return replica_copies(doc, pv)
+    if pv.tag == "divisionvol":
+        return division_copies(doc, pv, doc.solid_elements.get(_ref(doc, vol, "solidref")[1], vol))
+    if pv.tag == "paramvol":
+        return parameterised_copies(doc, solids, pv)
+    t, r, s = placement(doc, pv)
+    if np.any(s == 0):
+        doc.fail(pv, f"scale factors must be non-zero, got {s.tolist()}")
+    # G4GDMLReadStructure::PhysvolRead: G4Transform3D(R.inverse(), t) * G4Scale3D(s).
+    return [(affine(rotation_matrix(r).T @ np.diag(s), t), None)]
+
+
+def _volume_solid(doc, solids, vol, own_solid=None) -> Node | None:
     solid_el, solid_name = _ref(doc, vol, "solidref")
-    node = solids.solid(solid_name, solid_el)
+    node = own_solid if own_solid is not None else solids.solid(solid_name, solid_el)
     if node is None:
         return None
     mat = vol.find("materialref")
