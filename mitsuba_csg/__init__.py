@@ -20,8 +20,8 @@ from .variant import ensure_variant
 ensure_variant()
 
 from .errors import CSGError, ModelError, TreeTooDeepError  # noqa: E402
-from .model import (Box, Cone, ConvexPolyhedron, Cylinder, Mesh, MeshOrientationWarning, Node, Operation,  # noqa: E402
-                    Primitive, Prism, Sphere, Torus, difference, intersection, union)
+from .model import (Box, Cone, ConvexPolyhedron, Cylinder, Hyperboloid, Mesh, MeshOrientationWarning, Node,  # noqa: E402
+                    Operation, Paraboloid, Primitive, Prism, Sphere, Torus, difference, intersection, union)
 from .engine.optimize import OptimizedModel, optimize  # noqa: E402
 from .queries import (Hits, IterationLimitWarning, Prepared, RayHits, contains, prepare, rays_to_device,  # noqa: E402
                       trace, trace_rays)
@@ -53,9 +53,9 @@ def to_mesh(model, segments: int = 64):
 
 
 __all__ = [
-    "Box", "CSGError", "Cone", "ConvexPolyhedron", "Cylinder", "Hits", "IterationLimitWarning", "Mesh",
+    "Box", "CSGError", "Cone", "ConvexPolyhedron", "Cylinder", "Hits", "Hyperboloid", "IterationLimitWarning", "Mesh",
     "MeshOrientationWarning", "ModelError",
-    "Node", "Operation", "OptimizedModel", "Prepared", "Primitive", "Prism", "RayHits", "Sphere", "Torus",
+    "Node", "Operation", "OptimizedModel", "Paraboloid", "Prepared", "Primitive", "Prism", "RayHits", "Sphere", "Torus",
     "TreeTooDeepError", "contains", "difference", "intersection", "load", "model_ref", "optimize", "prepare",
     "rays_to_device", "register_plugins", "save", "to_mesh", "trace", "trace_rays", "union",
 ]

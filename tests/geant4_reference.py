@@ -29,7 +29,7 @@ import tempfile
 import numpy as np
 
 MAX_HANDOVERS = 10_000
-G4_INFINITY = 9.0e99 / 2       # Geant4 reports a miss as kInfinity (9e99)
+G4_INFINITY = 1e90             # Geant4 reports a miss as kInfinity (9e99; a scaled solid scales it)
 STEP_AHEAD = 1e-6              # mm past a boundary: beyond Geant4's surface tolerance (1e-9 mm)
 
 

@@ -33,7 +33,7 @@ import numpy as np
 
 from mitsuba_csg.model import Operation
 from mitsuba_csg.model.mesh import Mesh
-from mitsuba_csg.model.primitives import Box, Cone, ConvexPolyhedron, Prism, Sphere, Torus
+from mitsuba_csg.model.primitives import Box, Cone, ConvexPolyhedron, Hyperboloid, Paraboloid, Prism, Sphere, Torus
 
 INF = np.inf
 _REG_TOL = 1e-12   # regularization tolerance, relative to the ray's time scale
@@ -61,7 +61,7 @@ def _postorder(model, leaf_fn, op_fn):
                 stack.append((node, world, True))
                 for child in reversed(node.children):
                     stack.append((child, world, False))
-        elif isinstance(node, (Sphere, Box, Cone, Torus, ConvexPolyhedron, Mesh)):
+        elif isinstance(node, (Sphere, Box, Cone, Torus, ConvexPolyhedron, Mesh, Paraboloid, Hyperboloid)):
             world = parent @ np.asarray(node.matrix, dtype=np.float64)
             values.append(leaf_fn(node, world, counter))
             counter += 1
@@ -81,6 +81,46 @@ def leaf_list(model):
 
     _postorder(model, leaf, lambda kind, vals: None)
     return out
+
+
+def _local_half_extent(prim):
+    """Half sizes of a box around the primitive in its own frame (centred on its origin)."""
+    if isinstance(prim, Sphere):
+        return np.full(3, prim.radius)
+    if isinstance(prim, Box):
+        return 0.5 * np.asarray(prim.size, dtype=np.float64)
+    if isinstance(prim, Cone):
+        r = max(prim.radius_bottom, prim.radius_top)
+        return np.array([r, r, 0.5 * prim.height])
+    if isinstance(prim, Torus):
+        r = prim.major_radius + prim.minor_radius
+        return np.array([r, r, prim.minor_radius])
+    if isinstance(prim, (Paraboloid, Hyperboloid)):
+        a, b, c, h = _quadric_coefficients(prim)
+        r = np.sqrt(max(a * h * h + abs(b) * h + c, c))
+        return np.array([r, r, h])
+    if isinstance(prim, Mesh):
+        return np.abs(np.asarray(prim.vertices, dtype=np.float64)).max(axis=0)
+    if isinstance(prim, Prism):
+        r = prim.apothem / np.cos(np.pi / prim.sides)
+        return np.array([r, r, 0.5 * prim.height])
+    return np.abs(np.asarray(prim.vertices, dtype=np.float64)).max(axis=0)
+
+
+def _extent(model):
+    """An upper bound of the largest |coordinate| of the solid: the world corners of its leaves' boxes."""
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+    best = 0.0
+    for prim, world in leaf_list(model):
+        pts = (corners * _local_half_extent(prim)) @ world[:3, :3].T + world[:3, 3]
+        best = max(best, float(np.abs(pts).max()))
+    return best
+
+
+# The kernel's tie window (docs/accuracy.md): events of two children closer than
+# 8 ulps of (extent + |o|_inf) / |d| times 2^(k+1) < 2 / |cos| are one event. Boundaries that
+# close are ambiguous in float32 by design.
+_KERNEL_TIE = 8 * 2.0 ** -23
 
 
 def _planes_of(prim):
@@ -428,6 +468,66 @@ def _torus(o, d, R, r):
     return _extract(t, state, np.zeros((n, 4), np.int64), nrm, np.full((n, 4), INF))
 
 
+def _quadric_coefficients(prim, g=0.0):
+    """(a, b, c, h) of a paraboloid or hyperboloid: rho^2 <= a z^2 + b z + c, |z| <= h, in
+    its own frame; `g` widens it by g at its widest circle and lengthens it by g at each end."""
+    h = 0.5 * prim.height
+    if isinstance(prim, Paraboloid):
+        rb, rt = prim.radius_bottom, prim.radius_top
+        a, b, c = 0.0, (rt * rt - rb * rb) / prim.height, 0.5 * (rt * rt + rb * rb)
+        widest = max(rb, rt)
+    else:
+        a, b, c = (prim.radius_end ** 2 - prim.radius ** 2) / (h * h), 0.0, prim.radius ** 2
+        widest = prim.radius_end
+    s = max(widest + g, 1e-9 * widest) / widest
+    return a * s * s, b * s * s, c * s * s, max(h + g, 1e-9 * h)
+
+
+def _quadric(o, d, a, b, c, h):
+    """Intervals of rho^2 <= a z^2 + b z + c, |z| <= h: every candidate boundary (two roots of
+    the side, two cap planes) sorted, and each piece between two of them classified by its
+    midpoint. Margins: the distance to the nearest other candidate."""
+    n = len(o)
+    ox, oy, oz = o.T
+    dx, dy, dz = d.T
+    A = dx * dx + dy * dy - a * dz * dz
+    B = ox * dx + oy * dy - a * oz * dz - 0.5 * b * dz
+    C = ox * ox + oy * oy - a * oz * oz - b * oz - c
+    disc = B * B - A * C
+    sq = np.sqrt(np.maximum(disc, 0.0))
+    q = -(B + np.copysign(sq, B))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r1 = np.where((A != 0) & (disc >= 0), q / A, np.where((A == 0) & (B != 0), -C / (2 * B), INF))
+        r2 = np.where((A != 0) & (disc > 0) & (q != 0), C / q, INF)
+        p1, p2 = (-h - oz) / dz, (h - oz) / dz
+    cand = np.stack([r1, r2, p1, p2], 1)
+    cand = np.where(np.isfinite(cand), cand, INF)
+    kind = np.tile(np.array([0, 0, 1, 2]), (n, 1))         # side, bottom, top
+    order = np.argsort(cand, axis=1)
+    t = np.take_along_axis(cand, order, 1)
+    kind = np.take_along_axis(kind, order, 1)
+    fin = np.isfinite(t)
+
+    def inside_at(s):
+        p = o + s[:, None] * d
+        return (np.abs(p[:, 2]) <= h) & (p[:, 0] ** 2 + p[:, 1] ** 2 <= a * p[:, 2] ** 2 + b * p[:, 2] + c)
+
+    state = np.zeros((n, 4), bool)
+    for j in range(3):
+        seg = fin[:, j] & fin[:, j + 1]
+        mid = np.where(seg, 0.5 * (t[:, j] + np.where(seg, t[:, j + 1], 0.0)), 0.0)
+        state[:, j] = seg & inside_at(mid)
+    p = o[:, None, :] + np.where(fin, t, 0.0)[..., None] * d[:, None, :]
+    side = np.stack([p[..., 0], p[..., 1], -a * p[..., 2] - 0.5 * b], -1)
+    cap = np.zeros_like(side)
+    cap[..., 2] = np.where(kind == 1, -1.0, 1.0)
+    normal = np.where((kind == 0)[..., None], side, cap)
+    with np.errstate(invalid="ignore"):
+        gaps = np.abs(t[:, :, None] - t[:, None, :]) + np.where(np.eye(4, dtype=bool), INF, 0.0)[None]
+        margin = np.where(fin, np.nanmin(np.where(np.isnan(gaps), INF, gaps), axis=2), INF)
+    return _extract(np.where(fin, t, INF), state, np.zeros((n, 4), np.int64), normal, margin)
+
+
 def _mesh_grown(prim, g):
     """The mesh's vertices moved by g along their (area-weighted) vertex normals."""
     v, f = np.asarray(prim.vertices, dtype=np.float64), np.asarray(prim.faces)
@@ -500,6 +600,8 @@ def _leaf_raw(prim, world, index, o, d, grow=0.0):
         L = _torus(ol, dl, prim.major_radius, minor)
     elif isinstance(prim, Mesh):
         L = _mesh(ol, dl, prim, g)
+    elif isinstance(prim, (Paraboloid, Hyperboloid)):
+        L = _quadric(ol, dl, *_quadric_coefficients(prim, g))
     else:
         if isinstance(prim, Sphere):
             hit, t0, t1, n0, n1, m0, m1 = _sphere(ol, dl, max(prim.radius + g, 0.0))
@@ -632,6 +734,9 @@ def _contains_leaf(prim, world, p):
         h = prim.height
         rz = prim.radius_bottom + (prim.radius_top - prim.radius_bottom) * (z / h + 0.5)
         return (np.abs(z) <= 0.5 * h) & (np.hypot(x, y) <= rz)
+    if isinstance(prim, (Paraboloid, Hyperboloid)):
+        a, b, c, h = _quadric_coefficients(prim)
+        return (np.abs(z) <= h) & (x * x + y * y <= a * z * z + b * z + c)
     if isinstance(prim, Box):
         hs = 0.5 * np.asarray(prim.size)
         return np.all(np.abs(q) <= hs, axis=1)
@@ -667,8 +772,9 @@ def stable_mask(model, origins, directions, tmin=0.0, tmax=INF, *, sep=1e-5, cos
     raw primitive boundaries with tmin - sep*L <= t*|d| <= t_hit + sep*L (t_hit = the first
     hit, or tmax on a miss):
       * a boundary grazes (|n . d|/|d| < cos_min) or lies within sep*L of an edge/apex of its
-        primitive, or two boundaries (of any primitives) lie within sep*L of each other, or
-        one lies within sep*L of tmin;
+        primitive, or two boundaries (of any primitives) lie within sep*L of each other (or
+        within twice the kernel's tie window for their slope, where events are one by design),
+        or one lies within sep*L of tmin;
       * a primitive's silhouette passes within sep*L of the ray there (the primitive grown and
         shrunk by sep*L has different interval counts);
     or when the first boundary after tmin lies within sep*L of tmax, or when `trials` rays
@@ -704,10 +810,15 @@ def stable_mask(model, origins, directions, tmin=0.0, tmax=INF, *, sep=1e-5, cos
     reasons["grazing"] = np.any(win & (cosang < cos_min), 1)
     reasons["edge"] = np.any(win & (rm <= sep_t[:, None]), 1)
     reasons["near_tmin"] = np.any(win & (np.abs(rt - tmin_a[:, None]) <= sep_t[:, None]), 1)
-    ts = np.sort(np.where(win, rt, INF), 1)
-    with np.errstate(invalid="ignore"):
+    order = np.argsort(np.where(win, rt, INF), 1)
+    ts = np.take_along_axis(np.where(win, rt, INF), order, 1)
+    cos_sorted = np.take_along_axis(cosang, order, 1)
+    tie_t = _KERNEL_TIE * (_extent(model) + np.abs(o).max(axis=1)) / dlen
+    with np.errstate(invalid="ignore", divide="ignore"):
         gaps = np.diff(ts, axis=1)
-        close = gaps <= sep_t[:, None]
+        # Twice the window of the steeper event of each neighbouring pair (the kernel takes that one).
+        window = 4.0 * tie_t[:, None] / np.maximum(np.maximum(cos_sorted[:, 1:], cos_sorted[:, :-1]), 2.0 ** -10)
+        close = gaps <= np.maximum(sep_t[:, None], window)
         if same > 0:
             close &= gaps > (same * length / dlen)[:, None]
     reasons["close_boundaries"] = np.any(np.isfinite(ts[:, 1:]) & close, 1)

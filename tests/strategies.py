@@ -9,7 +9,8 @@ import numpy as np
 from hypothesis import strategies as st
 
 from mitsuba_csg.model import difference, intersection, union
-from mitsuba_csg.model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
+from mitsuba_csg.model.primitives import (Box, Cone, ConvexPolyhedron, Cylinder, Hyperboloid, Paraboloid, Prism, Sphere,
+                                         Torus)
 
 
 def _f(lo, hi):
@@ -49,12 +50,18 @@ def primitives():
         st.builds(Cone, st.just(0.0), _f(0.2, 1.0), _f(0.4, 2.0)),
     )
     tori = st.tuples(_f(0.5, 1.5), _f(0.25, 0.8)).map(lambda rr: Torus(rr[0], rr[1] * rr[0] * 0.6))
+    quadrics = st.one_of(
+        st.builds(Paraboloid, _f(0.0, 0.5), _f(0.6, 1.2), _f(0.4, 2.0)),
+        st.builds(Paraboloid, _f(0.6, 1.2), st.just(0.0), _f(0.4, 2.0)),
+        st.tuples(_f(0.0, 0.9), _f(0.3, 1.2), _f(0.4, 2.0)).map(lambda p: Hyperboloid(p[0] * p[1], p[1], p[2])),
+    )
     return st.one_of(
         st.builds(Sphere, _f(0.3, 1.2)),
         st.builds(Box, st.tuples(_f(0.4, 2.0), _f(0.4, 2.0), _f(0.4, 2.0))),
         st.builds(Cylinder, _f(0.2, 1.0), _f(0.4, 2.0)),
         cones,
         tori,
+        quadrics,
         st.builds(Prism, st.integers(3, 8), _f(0.3, 1.0), _f(0.4, 2.0)),
         convex_polyhedra(),
     )

@@ -334,6 +334,20 @@ def test_trd_trap_para():
         gdml.loads(twisted, "t.gdml", solid="S")
 
 
+def test_paraboloid_and_hype():
+    m = solid('<paraboloid name="S" rlo="1" rhi="3" dz="2"/>')
+    check_ray(m, (0, 0, -10), (0, 0, 1), [8, 12])
+    # rho^2 = k1 z + k2 with k1 = (9 - 1) / 4 = 2, k2 = 5: at z = 0.5 the radius is sqrt(6)
+    check_ray(m, (-10, 0, 0.5), (1, 0, 0), [10 - math.sqrt(6), 10 + math.sqrt(6)])
+    m = solid('<hype name="S" rmin="1" rmax="2" inst="0.3" outst="0.6" z="4"/>')
+    check_ray(m, (-10, 0, 0), (1, 0, 0), [8, 9, 11, 12])              # the waist: rmin and rmax
+    r_out, r_in = math.hypot(2, math.tan(0.6) * 1.5), math.hypot(1, math.tan(0.3) * 1.5)
+    check_ray(m, (-10, 0, 1.5), (1, 0, 0), [10 - r_out, 10 - r_in, 10 + r_in, 10 + r_out])
+    cone2 = solid('<hype name="S" rmin="0" rmax="2" inst="0.5" outst="0.6" z="4"/>')   # inner double cone
+    check_ray(cone2, (0, 0, -10), (0, 0, 1), [])                        # the axis lies in the hole
+    assert list(inside(cone2, [[0.1, 0, 0.0], [0.1, 0, 1.0], [1.9, 0, 0]])) == [True, False, True]
+
+
 def test_ellipsoid_eltube_elcone():
     e = solid('<ellipsoid name="S" ax="2" by="3" cz="4" zcut1="-1" zcut2="2"/>')
     check_ray(e, (0, 0, -10), (0, 0, 1), [9, 12])
@@ -484,7 +498,10 @@ def test_bad_files_each_raise_one_clear_error(tmp_path):
                   '<volume name="b"><solidref ref="Small"/><physvol><volumeref ref="a"/></physvol></volume>', BAR),
             "placement cycle")
     _expect(doc('<blob name="S" r="1"/>'), r"unknown solid <blob>", solid="S")
-    _expect(doc('<paraboloid name="S" rlo="1" rhi="2" dz="1"/>'), r"<paraboloid name=\"S\">.*cannot be represented",
+    _expect(doc('<reflectedSolid name="S" solid="A" sx="-1"/>'), r"<reflectedSolid name=\"S\">.*cannot be represented",
+            solid="S")
+    _expect(doc('<paraboloid name="S" rlo="2" rhi="1" dz="1"/>'), "needs rlo < rhi", solid="S")
+    _expect(doc('<hype name="S" rmin="1" rmax="2" inst="1.2" outst="0.1" z="4"/>'), "must lie inside the outer",
             solid="S")
     _expect(doc('<tessellated name="S"/>'), r"<tessellated name=\"S\">: a <tessellated> solid needs facets", solid="S")
     _expect(doc('<tessellated name="S"><triangular vertex1="a" vertex2="b" vertex3="c"/></tessellated>'),
@@ -516,13 +533,13 @@ def test_unsupported_skip_option():
     text = world('<physvol><volumeref ref="t"/></physvol><physvol><volumeref ref="o"/></physvol>',
                  '<volume name="t"><materialref ref="Fe"/><solidref ref="X"/></volume>'
                  '<volume name="o"><materialref ref="Cu"/><solidref ref="O"/></volume>',
-                 '<hype name="X"/><orb name="O" r="1"/><union name="U"><first ref="X"/><second ref="O"/></union>')
-    _expect(text, r"<hype name=\"X\">.*on_unsupported='skip'")
+                 '<reflectedSolid name="X"/><orb name="O" r="1"/><union name="U"><first ref="X"/><second ref="O"/></union>')
+    _expect(text, r"<reflectedSolid name=\"X\">.*on_unsupported='skip'")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         m = gdml.loads(text, "bad.gdml", on_unsupported="skip")
     assert [leaf.material for leaf in m.leaves()] == ["Cu"]
-    assert any("hype" in str(w.message) for w in caught)
+    assert any("reflectedSolid" in str(w.message) for w in caught)
     with pytest.raises(FormatError, match="bad option|on_unsupported must be"):
         gdml.loads(text, "bad.gdml", on_unsupported="maybe")
 

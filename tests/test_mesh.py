@@ -48,6 +48,13 @@ PRIMITIVES = [
     ("hex-prism", P.Prism(6, 0.8, 1.5), 2.0 * math.sqrt(3.0) * 0.8 ** 2 * 1.5),
     ("square-prism", P.Prism(4, 1.0, 1.0), 4.0),
     ("octahedron", P.ConvexPolyhedron(OCTAHEDRON), 4.0 / 3.0),
+    # The paraboloid's side bulges past the cone through its rims: rotated, its box is not
+    # the cap circles' (a bound taken from them once culled rays that hit it).
+    ("paraboloid", P.Paraboloid(0.4, 1.5, 2.0), math.pi * 2.0 * (0.4 ** 2 + 1.5 ** 2) / 2.0),
+    ("paraboloid-tip-rotated", P.Paraboloid(1.5, 0.0, 2.0).rotate((1, 0.3, 0), 65).translate((3, 0, 0)),
+     math.pi * 2.0 * 1.5 ** 2 / 2.0),
+    ("hyperboloid", P.Hyperboloid(0.5, 1.2, 3.0), math.pi * 3.0 * (0.5 ** 2 + (1.2 ** 2 - 0.5 ** 2) / 3.0)),
+    ("double-cone-rotated", P.Hyperboloid(0.0, 1.0, 2.0).rotate((0, 1, 1), 40), math.pi * 2.0 / 3.0),
 ]
 
 

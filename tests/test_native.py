@@ -266,7 +266,7 @@ def in_union(node) -> dict:
 @pytest.mark.parametrize("node,pattern", [
     # node type and keys
     ({"type": "sphre", "radius": 1}, r"root\.children\[1\]\.type: unknown node type 'sphre'; "
-                                     r"known node types: sphere, box, cylinder, cone, torus, prism, "
+                                     r"known node types: sphere, box, cylinder, cone, torus, paraboloid, hyperboloid, prism, "
                                      r"convex_polyhedron, mesh, union, intersection, difference$"),
     ({"radius": 1}, r'root\.children\[1\]: missing key "type"; known node types: sphere'),
     ([1, 2], r"root\.children\[1\]: expected a node .* got a list of 2 items"),

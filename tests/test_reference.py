@@ -17,7 +17,7 @@ import reference as ref  # noqa: E402
 from strategies import aimed_rays, make_points, make_rays, models, seeds  # noqa: E402
 
 from mitsuba_csg.model import difference, intersection, union  # noqa: E402
-from mitsuba_csg.model.primitives import (Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere,  # noqa: E402
+from mitsuba_csg.model.primitives import (Box, Cone, ConvexPolyhedron, Cylinder, Hyperboloid, Paraboloid, Prism, Sphere,  # noqa: E402
                                     Torus)
 
 # The example count comes from the hypothesis profile (tests/conftest.py), when there is one.
@@ -383,6 +383,9 @@ def _bounding_radius(prim):
         return math.hypot(max(prim.radius_bottom, prim.radius_top), 0.5 * prim.height)
     if isinstance(prim, Torus):
         return prim.major_radius + prim.minor_radius
+    if isinstance(prim, (Paraboloid, Hyperboloid)):
+        widest = max(prim.radius_bottom, prim.radius_top) if isinstance(prim, Paraboloid) else prim.radius_end
+        return math.hypot(widest, 0.5 * prim.height)
     n, d = ref._planes_of(prim)
     return float(np.max(np.linalg.norm(_convex_vertices(n, d), axis=1)))
 
@@ -441,6 +444,24 @@ def _convex_vertices(n, d):
     return np.array(pts)
 
 
+def _revolved(prim, segments):
+    """Our own profile of a paraboloid or hyperboloid (rho^2 = a z^2 + b z + c), densely sampled
+    near a tip or apex (z spaced as the square of an even step from it), revolved."""
+    import manifold3d as mf
+    a, b, c, h = ref._quadric_coefficients(prim)
+    u = np.linspace(0.0, 1.0, 4 * segments + 1)
+    if isinstance(prim, Paraboloid) and prim.radius_bottom > prim.radius_top:
+        z = h - 2 * h * u ** 2                            # from the tip at the top down
+    elif isinstance(prim, Paraboloid):
+        z = -h + 2 * h * u ** 2
+    else:
+        z = np.concatenate([-h * u[::-1] ** 2, h * u[1:] ** 2])   # both ways from the waist
+    z = np.unique(z)
+    rho = np.sqrt(np.maximum(a * z * z + b * z + c, 0.0))
+    pts = [(0.0, -h)] + [(r, zz) for r, zz in zip(rho, z) if r > 1e-12] + [(0.0, h)]
+    return mf.Manifold.revolve(mf.CrossSection([pts]), segments)
+
+
 def _mesh(model, segments=96):
     import manifold3d as mf
 
@@ -454,6 +475,8 @@ def _mesh(model, segments=96):
         elif isinstance(prim, Torus):
             circle = mf.CrossSection.circle(prim.minor_radius, segments // 2).translate((prim.major_radius, 0))
             m = circle.revolve(segments)
+        elif isinstance(prim, (Paraboloid, Hyperboloid)):
+            m = _revolved(prim, segments)
         else:
             n, d = ref._planes_of(prim)
             m = mf.Manifold.hull_points(_convex_vertices(n, d))
@@ -480,6 +503,10 @@ def _volume_of(prim):
         return math.pi * prim.height / 3 * (a * a + a * b + b * b)
     if isinstance(prim, Torus):
         return 2 * math.pi ** 2 * prim.major_radius * prim.minor_radius ** 2
+    if isinstance(prim, Paraboloid):
+        return math.pi * prim.height * (prim.radius_bottom ** 2 + prim.radius_top ** 2) / 2
+    if isinstance(prim, Hyperboloid):
+        return math.pi * prim.height * (prim.radius ** 2 + (prim.radius_end ** 2 - prim.radius ** 2) / 3)
     n, d = ref._planes_of(prim)
     v = _convex_vertices(n, d)
     import manifold3d as mf

@@ -44,8 +44,9 @@ UNION, INTERSECTION, DIFFERENCE, LEAF = 0, 1, 2, 3
 KIND_NAMES = {UNION: "union", INTERSECTION: "intersection", DIFFERENCE: "difference", LEAF: "leaf"}
 
 # ---- Canonical shapes (model primitives name theirs; the kernel knows these codes) ----
-SPHERE, BOX, CONE, TORUS, CONVEX, MESH = 0, 1, 2, 3, 4, 5
-SHAPE_CODES = {"sphere": SPHERE, "box": BOX, "cone": CONE, "torus": TORUS, "convex": CONVEX, "mesh": MESH}
+SPHERE, BOX, CONE, TORUS, CONVEX, MESH, QUADRIC = 0, 1, 2, 3, 4, 5, 6
+SHAPE_CODES = {"sphere": SPHERE, "box": BOX, "cone": CONE, "torus": TORUS, "convex": CONVEX, "mesh": MESH,
+               "quadric": QUADRIC}
 SHAPE_NAMES = {code: name for name, code in SHAPE_CODES.items()}
 
 # ---- Event classes ----

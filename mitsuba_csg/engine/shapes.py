@@ -6,9 +6,14 @@ first event strictly after `t_start` and classifies it by the parity of its inde
 Events are recomputed from the unchanged ray every time, so the same root gives the same
 float bit for bit, and "strictly after" needs no epsilon and always makes progress.
 
-Faces: sphere 0; box 2*axis + (1 on the + side); cone 0 side, 1 bottom, 2 top; torus 0;
+Faces: sphere 0; box 2*axis + (1 on the + side); cone and quadric 0 side, 1 bottom, 2 top; torus 0;
 convex polyhedron: the plane's index within the primitive; mesh: the triangle's index in
 BVH order (its plane is plane start + face, as for a convex polyhedron).
+
+The quadric x^2 + y^2 <= a z^2 + b z + c, |z| <= 1 (paraboloids, hyperboloids; params (a, b),
+c = 1 - a - |b|, so that its widest cap has radius 1) is not convex either: along a line its
+side region is up to two intervals, each clipped to the slab, and its events are those of
+the two pieces in order (touching pieces merged), so enter and exit still alternate.
 
 A mesh is not convex: its first crossing after t_start comes from a walk of its BVH
 (`engine.mesh_bvh`, near child first) with a watertight ray/triangle test, and its class from the side
@@ -29,7 +34,7 @@ import numpy as np
 
 from . import layout as K
 from . import mesh_bvh
-from .layout import BOX, CONE, CONVEX, ENTER, EXIT, MAX_SLOPE, MESH, MISS, SPHERE, TORUS
+from .layout import BOX, CONE, CONVEX, ENTER, EXIT, MAX_SLOPE, MESH, MISS, QUADRIC, SPHERE, TORUS
 
 # Acceptance slack for cone side/cap candidates near the rim (canonical units).
 _RIM_SLACK = 1e-5
@@ -124,6 +129,61 @@ def _cone(b, o, d, param, plane_buf, start, count):
         far = dr.select(better_far, t, far)
         far_face = dr.select(better_far, b.UInt32(face), far_face)
     return near, far, near_face, far_face
+
+
+def _quadric_event(b, o, d, param, t_start):
+    """(t, face, class) of the canonical quadric's first event after t_start."""
+    a, c_lin = param[0], param[1]
+    c0 = 1.0 - a - dr.abs(c_lin)
+    width = dr.width(a)
+    inf = dr.full(b.Float, dr.inf, width)
+    # The side's quadratic from the ray's closest approach to the origin (as for the cone).
+    t_near = -dr.dot(o, d) / dr.squared_norm(d)
+    oc = o + t_near * d
+    qa = d.x * d.x + d.y * d.y - a * d.z * d.z
+    qb = 2.0 * (oc.x * d.x + oc.y * d.y - a * oc.z * d.z) - c_lin * d.z
+    qc = oc.x * oc.x + oc.y * oc.y - a * oc.z * oc.z - c_lin * oc.z - c0
+    disc = qb * qb - 4.0 * qa * qc
+    real = disc >= 0.0
+    sq = dr.sqrt(dr.maximum(disc, 0.0))
+    q = -0.5 * (qb + dr.copysign(sq, qb))
+    ra = t_near + q / qa
+    rb = t_near + dr.select(disc > 0, qc / q, q / qa)
+    lo, hi = dr.minimum(ra, rb), dr.maximum(ra, rb)
+    linear_root = t_near - qc / qb
+    # The side region {f <= 0} along the line: [l1, h1] and [l2, h2] (empty: l > h).
+    bounded = (qa > 0) & real
+    split = (qa < 0) & real                       # two half-lines
+    everywhere = ((qa < 0) & ~real) | ((qa == 0) & (qb == 0) & (qc <= 0))
+    rising = (qa == 0) & (qb > 0)                 # f grows along the ray: inside before the root
+    falling = (qa == 0) & (qb < 0)
+    l1 = dr.select(bounded, lo, dr.select(split | everywhere | rising, -dr.inf, dr.select(falling, linear_root, inf)))
+    h1 = dr.select(bounded, hi, dr.select(split, lo, dr.select(everywhere | falling, inf,
+                                                             dr.select(rising, linear_root, -dr.inf))))
+    l2 = dr.select(split, hi, inf)
+    h2 = dr.select(split, inf, -dr.inf)
+    # The slab |z| <= 1 and the caps through which the ray enters and leaves it.
+    flat = d.z == 0
+    inv_dz = 1.0 / dr.select(flat, 1.0, d.z)
+    ta, tb = (-1.0 - o.z) * inv_dz, (1.0 - o.z) * inv_dz
+    in_slab = dr.abs(o.z) <= 1.0
+    s_in = dr.select(flat, dr.select(in_slab, -dr.inf, inf), dr.minimum(ta, tb))
+    s_out = dr.select(flat, dr.select(in_slab, inf, -dr.inf), dr.maximum(ta, tb))
+    up = d.z > 0
+    cap_in, cap_out = dr.select(up, b.UInt32(1), b.UInt32(2)), dr.select(up, b.UInt32(2), b.UInt32(1))
+    n1, f1 = dr.maximum(l1, s_in), dr.minimum(h1, s_out)
+    n2, f2 = dr.maximum(l2, s_in), dr.minimum(h2, s_out)
+    face_n1, face_f1 = dr.select(l1 > s_in, b.UInt32(0), cap_in), dr.select(h1 < s_out, b.UInt32(0), cap_out)
+    face_n2, face_f2 = dr.select(l2 > s_in, b.UInt32(0), cap_in), dr.select(h2 < s_out, b.UInt32(0), cap_out)
+    # Pieces that touch (a ray tangent inside the side) are one piece: no exit-enter pair.
+    touch = (n1 < f1) & (n2 < f2) & (n2 <= f1)
+    f1 = dr.select(touch, f2, f1)
+    face_f1 = dr.select(touch, face_f2, face_f1)
+    n2 = dr.select(touch, inf, n2)
+    t, face, cls = _interval_event(b, n1, f1, face_n1, face_f1, t_start)
+    t2, face2, cls2 = _interval_event(b, n2, f2, face_n2, face_f2, t_start)
+    second = cls == MISS
+    return dr.select(second, t2, t), dr.select(second, face2, face), dr.select(second, cls2, cls)
 
 
 @dr.syntax
@@ -331,7 +391,16 @@ def _torus_events(b, o, d, param):
     ends = [-reach, *splits, reach]
     events, oks = [], []
     for lo, hi in zip(ends[:-1], ends[1:]):
-        x, ok = _bracketed_root(f, df, lo, dr.maximum(lo, hi), valid)
+        hi = dr.maximum(lo, hi)
+        x, ok = _bracketed_root(f, df, lo, hi, valid)
+        # One Newton step on the geometric form (rho - 1)^2 + z^2 - k^2, which float32
+        # evaluates without the quartic's cancellation (its roots were off by ~1e-5 of the
+        # distance), kept inside the root's bracket so that the roots stay in order.
+        p = oc + x * dn
+        rho = dr.sqrt(p.x * p.x + p.y * p.y)
+        g = (rho - 1.0) * (rho - 1.0) + p.z * p.z - k * k
+        dg = 2.0 * (rho - 1.0) * (p.x * dn.x + p.y * dn.y) / rho + 2.0 * p.z * dn.z
+        x = dr.select((dg != 0) & (rho > 0), dr.clip(x - g / dg, lo, hi), x)
         events.append(t0 + x * inv_len)
         oks.append(ok)
     return events, oks
@@ -392,6 +461,8 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
         if shape == MESH:
             t, face, cls, near_normal = _mesh(b, o, d, param, plane_buf, plane_start, mesh, t_start)
             far_normal = b.Array3f(near_normal)
+    if shape == QUADRIC:
+        t, face, cls = _quadric_event(b, o, d, param, t_start)
     if shape == TORUS:
         # Pick the first root after t_start; its parity among the roots is its class.
         events, oks = _torus_events(b, o, d, param)
@@ -403,7 +474,7 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
             cls = dr.select(take, seen & 1, cls)
             found |= take
             seen += dr.select(ok, 1, 0)
-    elif shape != MESH:
+    elif (shape != MESH) & (shape != QUADRIC):
         t, face, cls = _interval_event(b, near, far, near_face, far_face, t_start)
     return t, face, cls, dr.select(cls == ENTER, near_normal, far_normal)
 
@@ -449,6 +520,17 @@ def _cone_surface(m, face, param, plane, x):
             dr.select(face == 0, side_grad, m.Array3f(zero, zero, cap_sign + zero)))
 
 
+def _quadric_surface(m, face, param, plane, x):
+    zero = dr.zeros(m.Float, dr.width(x.x))
+    a, c_lin = param[0], param[1]                      # side 0, bottom 1, top 2
+    c0 = 1.0 - a - dr.abs(c_lin)
+    side_g = x.x * x.x + x.y * x.y - a * x.z * x.z - c_lin * x.z - c0
+    side_grad = m.Array3f(2.0 * x.x, 2.0 * x.y, -2.0 * a * x.z - c_lin)
+    cap_sign = dr.select(face == 1, -1.0, 1.0)
+    return (dr.select(face == 0, side_g, cap_sign * x.z - 1.0),
+            dr.select(face == 0, side_grad, m.Array3f(zero, zero, cap_sign + zero)))
+
+
 def _torus_surface(m, face, param, plane, x):
     k = param[0]                                       # major radius 1, minor k
     s = dr.squared_norm(x) + 1.0 - k * k
@@ -484,6 +566,36 @@ def _cone_bounds(A, c, param, plane_start, plane_vertices):
     disc = _disc_support(A)
     bottom_h, top_h = param[:, 0:1] * disc, param[:, 1:2] * disc
     return (np.minimum(bottom_c - bottom_h, top_c - top_h), np.maximum(bottom_c + bottom_h, top_c + top_h))
+
+
+def _quadric_bounds(A, c, param, plane_start, plane_vertices):
+    # Per world axis, the support max_z (p z + w rho(z)) over |z| <= 1, with p the axis' z
+    # weight and w the norm of its xy weights: rho = sqrt(a z^2 + b z + c) bulges past the
+    # hull of the cap circles (a paraboloid's does), so the maximum may lie between the caps,
+    # where p rho = -w rho' (squared: a quadratic in z). Its real roots in [-1, 1] and the ends
+    # are the candidates; extra roots from squaring are harmless (any z gives a lower bound).
+    a, b = param[:, 0:1], param[:, 1:2]
+    c0 = 1.0 - a - np.abs(b)
+    w = _disc_support(A)                               # (n, 3)
+
+    def support(p):
+        qa = 4.0 * a * (p * p - w * w * a)
+        qb = 4.0 * b * (p * p - w * w * a)
+        qc = 4.0 * p * p * c0 - w * w * b * b
+        disc = qb * qb - 4.0 * qa * qc
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            linear = np.where(qb != 0, -qc / qb, 0.0)
+            z1 = np.where(qa != 0, (-qb - sq) / (2.0 * qa), linear)
+            z2 = np.where(qa != 0, (-qb + sq) / (2.0 * qa), linear)
+        best = np.full(p.shape, -np.inf)
+        for z in (np.full(p.shape, -1.0), np.full(p.shape, 1.0), z1, z2):
+            z = np.clip(np.nan_to_num(z), -1.0, 1.0)
+            best = np.maximum(best, p * z + w * np.sqrt(np.maximum(a * z * z + b * z + c0, 0.0)))
+        return best
+
+    p = A[:, :, 2]
+    return c - support(-p), c + support(p)
 
 
 def _torus_bounds(A, c, param, plane_start, plane_vertices):
@@ -522,6 +634,7 @@ SHAPES = (
     Shape(BOX, _box, _box_surface, _box_bounds),
     Shape(CONE, _cone, _cone_surface, _cone_bounds),
     Shape(TORUS, None, _torus_surface, _torus_bounds),     # four roots: _torus_events
+    Shape(QUADRIC, None, _quadric_surface, _quadric_bounds),  # two pieces: _quadric_event
     Shape(CONVEX, None, _convex_surface, _convex_bounds),  # also the faces' normals: _convex
     Shape(MESH, None, _convex_surface, _convex_bounds),    # a triangle's plane; bounds of the vertices
 )

@@ -193,6 +193,8 @@ def _mesh_key(prim: Node) -> tuple:
         return ("cone", prim.radius_bottom, prim.radius_top, prim.height)
     if isinstance(prim, P.Torus):
         return ("torus", prim.major_radius, prim.minor_radius)
+    if isinstance(prim, (P.Paraboloid, P.Hyperboloid)):
+        return (type(prim).__name__,) + tuple(getattr(prim, k) for k in type(prim).__slots__)
     raise ModelError(f"to_mesh: no mesh for the primitive {prim!r}")
 
 
@@ -217,8 +219,43 @@ def _primitive_mesh(prim: Node, n: int) -> m3.Manifold:
         return m3.Manifold.cube(tuple(prim.size), center=True)
     if isinstance(prim, P.Cone):
         return m3.Manifold.cylinder(prim.height, prim.radius_bottom, prim.radius_top, n, center=True)
+    if isinstance(prim, (P.Paraboloid, P.Hyperboloid)):
+        return _revolved_quadric(prim, n)
     tube = m3.CrossSection.circle(prim.minor_radius, n).translate((prim.major_radius, 0.0))
     return m3.Manifold.revolve(tube, n)
+
+
+def _revolved_quadric(prim, n: int) -> m3.Manifold:
+    """A paraboloid or hyperboloid: its profile rho(z) revolved, sampled at n / 2 even steps in z
+    and at the z of n / 2 even steps in rho (a tip's rho changes fast: sqrt near it)."""
+    canonical, (a, b), _ = prim.canonical()
+    r, half = canonical[0, 0], canonical[2, 2]
+    c = 1.0 - a - abs(b)
+    k = max(n // 2, 2)
+    levels = np.linspace(0.0, 1.0, k + 1) ** 2 - c         # a z^2 + b z = rho^2 - c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if a > 0:
+            disc = np.sqrt(np.maximum(b * b + 4.0 * a * levels, 0.0))
+            steps = np.concatenate([(-b - disc) / (2.0 * a), (-b + disc) / (2.0 * a)])
+        else:
+            steps = levels / b
+    steps = steps[np.isfinite(steps) & (np.abs(steps) < 1.0)]
+    s = np.unique(np.concatenate([np.linspace(-1.0, 1.0, k + 1), steps]))
+    s = s[np.concatenate([[True], np.diff(s) > 1e-9])]
+    rho = r * np.sqrt(np.maximum(a * s * s + b * s + c, 0.0))
+    keep = rho > 1e-9 * r                      # a tip or a double cone's apex lies on the axis
+    profile = np.column_stack([rho[keep], half * s[keep]])
+    ends = []
+    if keep[0]:
+        ends.append([[0.0, -half]])
+    ends.append(profile)
+    if keep[-1]:
+        ends.append([[0.0, half]])
+    if not keep.all() and keep[0] and keep[-1]:         # the apex in the middle: two cones
+        mid = np.flatnonzero(~keep)[0]
+        ends = [[[0.0, -half]], profile[:mid], [[0.0, half * s[mid]]], profile[mid:], [[0.0, half]]]
+    polygon = np.vstack(ends)
+    return m3.Manifold.revolve(m3.CrossSection([polygon]), n)
 
 
 # ---- Mesh files ----

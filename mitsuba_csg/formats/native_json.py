@@ -30,7 +30,7 @@ from ..model import transform as tf
 from ..model import values
 from ..model.mesh import Mesh
 from ..model.nodes import OPERATIONS, Node, Operation
-from ..model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
+from ..model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Hyperboloid, Paraboloid, Prism, Sphere, Torus
 from .reading import FormatError, read_model_bytes
 
 FORMAT = "mitsuba-csg"
@@ -252,6 +252,8 @@ PRIMITIVES = {
     "cylinder": (Cylinder, {"radius": _positive, "height": _positive}),
     "cone": (Cone, {"radius_bottom": _nonnegative, "radius_top": _nonnegative, "height": _positive}),
     "torus": (Torus, {"major_radius": _positive, "minor_radius": _positive}),
+    "paraboloid": (Paraboloid, {"radius_bottom": _nonnegative, "radius_top": _nonnegative, "height": _positive}),
+    "hyperboloid": (Hyperboloid, {"radius": _nonnegative, "radius_end": _positive, "height": _positive}),
     "prism": (Prism, {"sides": _sides, "apothem": _positive, "height": _positive}),
     "convex_polyhedron": (ConvexPolyhedron, {"planes": _planes}),
     "mesh": (Mesh, {"vertices": _vertices, "faces": _faces}),
@@ -273,6 +275,11 @@ def _primitive_params(prim) -> tuple[str, dict]:
         if cls is Cone:
             return "cone", {"radius_bottom": prim.radius_bottom, "radius_top": prim.radius_top,
                             "height": prim.height}
+        if cls is Paraboloid:
+            return "paraboloid", {"radius_bottom": prim.radius_bottom, "radius_top": prim.radius_top,
+                                  "height": prim.height}
+        if cls is Hyperboloid:
+            return "hyperboloid", {"radius": prim.radius, "radius_end": prim.radius_end, "height": prim.height}
         if cls is Torus:
             return "torus", {"major_radius": prim.major_radius, "minor_radius": prim.minor_radius}
         if cls is Prism:

@@ -8,8 +8,8 @@ Nothing here knows about the kernel or Mitsuba.
 """
 from .nodes import DIFFERENCE, INTERSECTION, OPERATIONS, UNION, Node, Operation, Primitive, difference, intersection, union
 from .mesh import Mesh, MeshOrientationWarning
-from .primitives import Box, Cone, ConvexPolyhedron, Cylinder, Prism, Sphere, Torus
+from .primitives import Box, Cone, ConvexPolyhedron, Cylinder, Hyperboloid, Paraboloid, Prism, Sphere, Torus
 
-__all__ = ["DIFFERENCE", "INTERSECTION", "OPERATIONS", "UNION", "Box", "Cone", "ConvexPolyhedron", "Cylinder", "Mesh",
+__all__ = ["DIFFERENCE", "INTERSECTION", "OPERATIONS", "UNION", "Box", "Cone", "ConvexPolyhedron", "Cylinder", "Hyperboloid", "Mesh",
            "MeshOrientationWarning",
-           "Node", "Operation", "Primitive", "Prism", "Sphere", "Torus", "difference", "intersection", "union"]
+           "Node", "Operation", "Paraboloid", "Primitive", "Prism", "Sphere", "Torus", "difference", "intersection", "union"]

@@ -1,9 +1,10 @@
 """Analytic primitives and their canonical forms.
 
 Every primitive is described to the kernel as a *canonical* solid (unit sphere, cube
-[-1,1]^3, capped cone with |z| <= 1, torus of major radius 1, convex polyhedron) plus the
+[-1,1]^3, capped cone with |z| <= 1, capped quadric of revolution rho^2 <= a z^2 + b z + c with
+|z| <= 1, torus of major radius 1, convex polyhedron) plus the
 matrix that maps the canonical solid to the primitive's local frame. Sizes thus live in
-matrices, and the kernel intersects five shapes only. All sizes are full lengths (as in
+matrices, and the kernel intersects six shapes only. All sizes are full lengths (as in
 GDML and OpenSCAD); `radius`, `apothem` and `major_radius` are radii.
 """
 from __future__ import annotations
@@ -108,6 +109,76 @@ class Cylinder(Cone):
 
     def __repr__(self):
         return f"Cylinder(radius={self.radius:g}, height={self.height:g}){self._transform_repr()}"
+
+
+class Paraboloid(Primitive):
+    """Paraboloid of revolution along z (Geant4's G4Paraboloid), capped at z = -height/2 and +height/2.
+
+    The side is rho^2 = k1 z + k2 through `radius_bottom` at -height/2 and `radius_top` at
+    +height/2 (one of them may be 0: the tip).
+    """
+
+    __slots__ = ("radius_bottom", "radius_top", "height")
+    canonical_shape = "quadric"
+
+    def __init__(self, radius_bottom: float = 0.0, radius_top: float = 1.0, height: float = 1.0, *,
+                 material: str | None = None):
+        super().__init__(material=material)
+        name = type(self).__name__
+        self.radius_bottom = _nonnegative(radius_bottom, f"{name}.radius_bottom")
+        self.radius_top = _nonnegative(radius_top, f"{name}.radius_top")
+        if self.radius_bottom == self.radius_top:
+            raise ModelError(f"{name}: radius_bottom and radius_top are both {self.radius_top:g}; equal radii "
+                             f"make no paraboloid (use a Cylinder)")
+        self.height = _positive(height, f"{name}.height")
+
+    def canonical(self):
+        r = max(self.radius_bottom, self.radius_top)
+        lo, hi = (self.radius_bottom / r) ** 2, (self.radius_top / r) ** 2
+        return np.diag([r, r, 0.5 * self.height, 1.0]), (0.0, 0.5 * (hi - lo)), None
+
+    def __repr__(self):
+        return (f"Paraboloid(radius_bottom={self.radius_bottom:g}, radius_top={self.radius_top:g}, "
+                f"height={self.height:g}){self._transform_repr()}")
+
+
+class Hyperboloid(Primitive):
+    """Hyperboloid of one sheet along z, capped at z = -height/2 and +height/2 (Geant4's G4Hype
+    without its inner surface): rho^2 = radius^2 + (radius_end^2 - radius^2) (2 z / height)^2,
+    `radius` at the waist z = 0 and `radius_end` at the caps. `radius` 0 gives a double cone;
+    equal radii a cylinder.
+    """
+
+    __slots__ = ("radius", "radius_end", "height")
+    canonical_shape = "quadric"
+
+    def __init__(self, radius: float = 0.5, radius_end: float = 1.0, height: float = 1.0, *,
+                 material: str | None = None):
+        super().__init__(material=material)
+        name = type(self).__name__
+        self.radius = _nonnegative(radius, f"{name}.radius")
+        self.radius_end = _positive(radius_end, f"{name}.radius_end")
+        if self.radius > self.radius_end:
+            raise ModelError(f"{name}: radius ({self.radius:g}) must not exceed radius_end ({self.radius_end:g}): "
+                             f"the waist is the narrowest place")
+        self.height = _positive(height, f"{name}.height")
+
+    @classmethod
+    def from_stereo(cls, radius: float, stereo: float, height: float, *, material: str | None = None):
+        """Geant4's form: the waist `radius` and the stereo angle (radians) between the side's
+        lines and the z axis, tan(stereo) = d rho / d z far from the waist."""
+        slope = np.tan(values.checked(values.nonnegative, stereo, "Hyperboloid.stereo"))
+        if not stereo < 0.5 * np.pi:
+            raise ModelError(f"Hyperboloid.stereo: must be below 90 degrees, got {stereo:g} rad")
+        return cls(radius, float(np.hypot(radius, slope * 0.5 * height)), height, material=material)
+
+    def canonical(self):
+        r = self.radius_end
+        return np.diag([r, r, 0.5 * self.height, 1.0]), (1.0 - (self.radius / r) ** 2, 0.0), None
+
+    def __repr__(self):
+        return (f"Hyperboloid(radius={self.radius:g}, radius_end={self.radius_end:g}, "
+                f"height={self.height:g}){self._transform_repr()}")
 
 
 class Torus(Primitive):

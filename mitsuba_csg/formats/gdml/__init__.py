@@ -22,13 +22,13 @@ What is read
   evaluated by a whitelisted `ast` walker, never `eval`.
 * Solids: box, tube, cutTube, cone, sphere, orb, torus, polycone, polyhedra (zplane rmax is
   the apothem), trd, trap, para, tet, ellipsoid, eltube, elcone, union, subtraction,
-  intersection, multiUnion, scaledSolid; tessellated and xtru as triangle-mesh leaves. Phi segments are intersections with (or, above 180 degrees,
+  intersection, multiUnion, scaledSolid, paraboloid and hype (quadric leaves); tessellated and xtru
+  as triangle-mesh leaves. Phi segments are intersections with (or, above 180 degrees,
   subtractions of) convex wedges; rmin holes are subtracted cones/spheres/tori extended past
   the caps so no faces coincide; theta cuts are cones with their apex at the centre.
 * `<loop>`s (`loops`), and volumes placed many times by one element: replicavol,
   divisionvol, paramvol (`replicas`), expanded into copies as Geant4 places them.
-* Not representable exactly by our primitives: arb8, twisted*, hype,
-  paraboloid, genericPolycone, genericPolyhedra, reflectedSolid, opticalsurface-bound solids,
+* Not representable exactly by our primitives: arb8, twisted*, genericPolycone, genericPolyhedra, reflectedSolid, opticalsurface-bound solids,
   and `physvol file=`. `on_unsupported="error"` raises a
   FormatError naming the element and its name; `"skip"` warns (UserWarning) and leaves the solid
   out, together with every boolean built from it and every volume made of it.

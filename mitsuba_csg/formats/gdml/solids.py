@@ -18,7 +18,7 @@ from ...model.construct import frustum_chunk, inner_cone, phi_cut, theta_cut
 from ...model.mesh import Mesh, orient_consistently, signed_volume, weld
 from ...model.nodes import Node, Operation
 from ...model.polyhedra import hull_planes
-from ...model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Sphere, Torus
+from ...model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Hyperboloid, Paraboloid, Sphere, Torus
 from ..reading import FormatError
 from .defines import affine, placement, rotation_matrix, vector
 from .expressions import TWO_PI
@@ -26,7 +26,7 @@ from .expressions import TWO_PI
 # Solids we know Geant4 has but cannot represent exactly with our primitives.
 UNSUPPORTED_SOLIDS = (
     "arb8", "twistedbox", "twistedtrd", "twistedtrap", "twistedtubs",
-    "hype", "paraboloid", "genericPolycone", "genericPolyhedra", "reflectedSolid", "loop",
+    "genericPolycone", "genericPolyhedra", "reflectedSolid", "loop",
     "gencone",
 )
 _BOOLEANS = {"union": "union", "subtraction": "difference", "intersection": "intersection"}
@@ -425,6 +425,36 @@ class Solids:
         zmax = self._positive(el, "zmax", lunit)
         zcut = min(self._positive(el, "zcut", lunit), zmax)
         return Cone(zmax + zcut, zmax - zcut, 2.0 * zcut).scale((dx, dy, 1.0))
+
+    def _solid_paraboloid(self, el):
+        """G4Paraboloid: rho^2 = k1 z + k2 through rlo at -dz and rhi at +dz (dz a half length)."""
+        lunit, _ = self._units(el)
+        rlo = self._nonnegative(el, "rlo", lunit)
+        rhi = self._positive(el, "rhi", lunit)
+        dz = self._positive(el, "dz", lunit)
+        if rlo >= rhi:
+            self.doc.fail(el, f"needs rlo < rhi (Geant4's G4Paraboloid), got {rlo:g} and {rhi:g}")
+        return Paraboloid(rlo, rhi, 2.0 * dz)
+
+    def _solid_hype(self, el):
+        """G4Hype: between the hyperboloids rho^2 = r^2 + tan^2(stereo) z^2 of the inner and outer
+        radius and stereo angle, |z| <= z / 2. The inner one is cut out, extended past the caps."""
+        lunit, aunit = self._units(el)
+        rmin = self._nonnegative(el, "rmin", lunit, 0.0)
+        rmax = self._positive(el, "rmax", lunit)
+        inst = self._nonnegative(el, "inst", aunit, 0.0)
+        outst = self._nonnegative(el, "outst", aunit, 0.0)
+        z = self._positive(el, "z", lunit)
+        if max(inst, outst) >= 0.5 * math.pi:
+            self.doc.fail(el, "stereo angles must be below 90 degrees")
+        solid = Hyperboloid.from_stereo(rmax, outst, z)
+        inner_end = math.hypot(rmin, math.tan(inst) * 0.5 * z)
+        if inner_end >= solid.radius_end or rmin >= rmax:
+            self.doc.fail(el, f"the inner surface (rmin {rmin:g}, inst {inst:g} rad) must lie inside the outer one "
+                              f"(rmax {rmax:g}, outst {outst:g} rad)")
+        if rmin > 0 or inst > 0:
+            solid = solid - Hyperboloid.from_stereo(rmin, inst, 1.5 * z)
+        return solid
 
     def _operand(self, ref_el) -> Node | None:
         return self.solids[ref_el.get("ref")]
