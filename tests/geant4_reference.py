@@ -1,6 +1,6 @@
 """Geant4 itself as the reference for GDML files: run as a script, one file per process.
 
-    python tests/geant4_reference.py FILE.gdml RAYS.npz OUT.npz
+    python tests/geant4_reference.py FILE.gdml RAYS.npz OUT.npz [SOLID]
 
 A fatal Geant4 error ends the process, so the tests call this in a subprocess. It reads the
 file with Geant4's own GDML parser and, for the union of every volume placed below the
@@ -13,6 +13,7 @@ in mm):
   no solid holds the ray (touching solids hand the ray on); for an outside
   origin, the smallest `DistanceToIn` (inf for a miss).
 
+With SOLID, the answers are for that one solid in its own frame instead.
 Files with replicated, divided or parameterised volumes are answered by Geant4's navigator
 instead (`answer_by_navigation`), which places those copies by itself. Where RAYS.npz also
 holds `points`, OUT.npz gets `level`: the placement depth of the deepest volume holding
@@ -209,6 +210,7 @@ def _geometry_only(path, tmp):
 
 def main(argv):
     path, rays, out = argv[1:4]
+    solid_name = argv[4] if len(argv) > 4 else None
     g4 = _import_geant4()
     parser = g4.G4GDMLParser()
     parser.SetOverlapCheck(False)
@@ -216,7 +218,13 @@ def main(argv):
     world = parser.GetWorldVolume()
     data = np.load(rays)
     o, d = data["o"].astype(float), data["d"].astype(float)
-    if has_copies(world):
+    if solid_name is not None:          # one solid in its own frame
+        solid = g4.G4SolidStore.GetInstance().GetSolid(solid_name, True, False)
+        lo, hi = g4.G4ThreeVector(), g4.G4ThreeVector()
+        g4.G4VSolid.BoundingLimits(solid, lo, hi)
+        box = (np.array([lo.x, lo.y, lo.z]), np.array([hi.x, hi.y, hi.z]))
+        inside, t = answer(g4, [(solid, np.eye(4), np.eye(4), *box)], o, d)
+    elif has_copies(world):
         inside, t = answer_by_navigation(g4, world, o, d)
     else:
         inside, t = answer(g4, placed_solids(g4, world), o, d)

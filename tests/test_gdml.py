@@ -348,6 +348,50 @@ def test_paraboloid_and_hype():
     assert list(inside(cone2, [[0.1, 0, 0.0], [0.1, 0, 1.0], [1.9, 0, 0]])) == [True, False, True]
 
 
+def test_swept_and_revolved_solids():
+    from mitsuba_csg.model.mesh import signed_volume
+    # arb8 without twist: the exact convex polyhedron; with twist: a swept mesh (volume kept)
+    flat = solid('<arb8 name="S" dz="1" v1x="-2" v1y="-2" v2x="-2" v2y="2" v3x="2" v3y="2" v4x="2" v4y="-2" '
+                 'v5x="-1" v5y="-1" v6x="-1" v6y="1" v7x="1" v7y="1" v8x="1" v8y="-1"/>')
+    assert isinstance(flat, csg.ConvexPolyhedron)
+    check_ray(flat, (-10, 0, 0), (1, 0, 0), [8.5, 11.5])                   # half width 1.5 at z = 0
+    twisted = solid('<arb8 name="S" dz="1" v1x="-2" v1y="-2" v2x="-2" v2y="2" v3x="2" v3y="2" v4x="2" v4y="-2" '
+                    'v5x="-2" v5y="-2" v6x="-2" v6y="2" v7x="2" v7y="2" v8x="2" v8y="1"/>')
+    assert isinstance(twisted, csg.Mesh)
+    # cross-sections of area 16, 13, 10 at z = -1, 0, 1 (quadratic in z): Simpson's rule is exact
+    assert signed_volume(twisted.vertices, twisted.faces) == pytest.approx(2 * (16 + 4 * 13 + 10) / 6, rel=1e-4)
+    # a twisted box keeps its cross-section: volume x y z; a quarter turn about z maps it onto itself
+    box = solid('<twistedbox name="S" PhiTwist="0.8" x="2" y="3" z="4"/>')
+    assert signed_volume(box.vertices, box.faces) == pytest.approx(24.0, rel=1e-3)
+    check_ray(box, (0, 0, -10), (0, 0, 1), [8, 12])
+    c, s_ = math.cos(0.4), math.sin(0.4)                                   # the top turned by +0.4 rad
+    assert list(inside(box, [[0.99 * c - 1.49 * s_, 0.99 * s_ + 1.49 * c, 1.99],
+                             [0.99 * c + 1.49 * s_, -0.99 * s_ + 1.49 * c, 1.99]])) == [True, False]  # turned back
+    tubs = solid('<twistedtubs name="S" twistedangle="40" endinnerrad="3" endouterrad="5" zlen="8" phi="60" '
+                 'aunit="deg"/>')
+    ri, ro, kappa = 3 * math.cos(math.radians(20)), 5 * math.cos(math.radians(20)), math.tan(math.radians(20)) / 4
+    exact = math.radians(60) / 2 * (ro * ro - ri * ri) * (8 + 2 * kappa ** 2 * 4 ** 3 / 3)
+    assert signed_volume(tubs.vertices, tubs.faces) == pytest.approx(exact, rel=2e-3)
+    # a generic polycone of two stacked frusta and a hole: exact cones
+    gp = solid('<genericPolycone name="S" startphi="0" deltaphi="360" aunit="deg">'
+               '<rzpoint r="1" z="-2"/><rzpoint r="3" z="-2"/><rzpoint r="2" z="2"/><rzpoint r="1" z="2"/>'
+               '</genericPolycone>')
+    check_ray(gp, (-10, 0, 0), (1, 0, 0), [7.5, 9, 11, 12.5])
+    mirrored = solid('<box name="B" x="2" y="2" z="2"/><reflectedSolid name="S" solid="B" sx="-1" sy="1" sz="1" '
+                     'dx="5" rz="90" aunit="deg"/>')
+    check_ray(mirrored, (0, 0, 0), (1, 0, 0), [4, 6])
+
+
+def test_vector_units_are_read_as_geant4_reads_them():
+    # Geant4 reads only unit= on <rotation>/<position>: aunit="deg" there leaves radians (with a warning)
+    text = world('<physvol><volumeref ref="bar"/><rotation name="r" z="90" aunit="deg"/></physvol>',
+                 '<volume name="bar"><materialref ref="Fe"/><solidref ref="Bar"/></volume>', BAR)
+    with pytest.warns(UserWarning, match='aunit="deg" is not read on a <rotation>'):
+        m = gdml.loads(text, "u.gdml")
+    c, s_ = math.cos(-90.0), math.sin(-90.0)                   # 90 rad; the frame rotation's inverse
+    assert list(inside(m, [[4.5 * c, 4.5 * s_, 0]])) == [True]
+
+
 def test_ellipsoid_eltube_elcone():
     e = solid('<ellipsoid name="S" ax="2" by="3" cz="4" zcut1="-1" zcut2="2"/>')
     check_ray(e, (0, 0, -10), (0, 0, 1), [9, 12])
@@ -498,8 +542,8 @@ def test_bad_files_each_raise_one_clear_error(tmp_path):
                   '<volume name="b"><solidref ref="Small"/><physvol><volumeref ref="a"/></physvol></volume>', BAR),
             "placement cycle")
     _expect(doc('<blob name="S" r="1"/>'), r"unknown solid <blob>", solid="S")
-    _expect(doc('<reflectedSolid name="S" solid="A" sx="-1"/>'), r"<reflectedSolid name=\"S\">.*cannot be represented",
-            solid="S")
+    _expect(doc('<gencone name="S"/>'), r"<gencone name=\"S\">.*cannot be represented", solid="S")
+    _expect(doc('<reflectedSolid name="S" solid="nope" sx="-1"/>'), "undefined solid 'nope'", solid="S")
     _expect(doc('<paraboloid name="S" rlo="2" rhi="1" dz="1"/>'), "needs rlo < rhi", solid="S")
     _expect(doc('<hype name="S" rmin="1" rmax="2" inst="1.2" outst="0.1" z="4"/>'), "must lie inside the outer",
             solid="S")
@@ -533,13 +577,13 @@ def test_unsupported_skip_option():
     text = world('<physvol><volumeref ref="t"/></physvol><physvol><volumeref ref="o"/></physvol>',
                  '<volume name="t"><materialref ref="Fe"/><solidref ref="X"/></volume>'
                  '<volume name="o"><materialref ref="Cu"/><solidref ref="O"/></volume>',
-                 '<reflectedSolid name="X"/><orb name="O" r="1"/><union name="U"><first ref="X"/><second ref="O"/></union>')
-    _expect(text, r"<reflectedSolid name=\"X\">.*on_unsupported='skip'")
+                 '<gencone name="X"/><orb name="O" r="1"/><union name="U"><first ref="X"/><second ref="O"/></union>')
+    _expect(text, r"<gencone name=\"X\">.*on_unsupported='skip'")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         m = gdml.loads(text, "bad.gdml", on_unsupported="skip")
     assert [leaf.material for leaf in m.leaves()] == ["Cu"]
-    assert any("reflectedSolid" in str(w.message) for w in caught)
+    assert any("gencone" in str(w.message) for w in caught)
     with pytest.raises(FormatError, match="bad option|on_unsupported must be"):
         gdml.loads(text, "bad.gdml", on_unsupported="maybe")
 

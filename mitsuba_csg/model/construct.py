@@ -90,3 +90,25 @@ def frustum_chunk(phi0, step, chunk, full, z0, z1, r0, r1, extend_bottom, extend
     planes.append([0.0, 0.0, 1.0, z1 + extend_top])
     planes.append([0.0, 0.0, -1.0, -(z0 - extend_bottom)])
     return ConvexPolyhedron(planes)
+
+
+def rz_sections(points) -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
+    """An (r, z) polygon (Geant4's generic polycone/polyhedra: any simple polygon with r >= 0)
+    as polycone sections: ((z0, rmin0, rmax0), (z1, rmin1, rmax1)) pairs, one per pair of
+    edges that bound the polygon's inside in each slab between two vertex heights (even-odd
+    from the axis), so that the revolved polygon is the union of the sections' frustum shells."""
+    pts = [(float(r), float(z)) for r, z in points]
+    edges = [(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
+    heights = sorted({z for _, z in pts})
+    sections = []
+    for z0, z1 in zip(heights, heights[1:]):
+        zm = 0.5 * (z0 + z1)
+        crossing = []
+        for (ra, za), (rb, zb) in edges:
+            if min(za, zb) <= z0 and max(za, zb) >= z1 and za != zb:
+                at = lambda z: ra + (rb - ra) * (z - za) / (zb - za)     # noqa: E731
+                crossing.append((at(zm), at(z0), at(z1)))
+        crossing.sort()
+        for inner, outer in zip(crossing[0::2], crossing[1::2]):
+            sections.append(((z0, inner[1], outer[1]), (z1, inner[2], outer[2])))
+    return sections

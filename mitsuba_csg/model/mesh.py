@@ -29,6 +29,38 @@ def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return unique, inverse.reshape(-1)[faces]
 
 
+def ruled_mesh(rings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of the solid swept by a polygon through z: `rings` (K, M, 3) holds the
+    polygon (the same M corners, in the same order, at K >= 2 heights); neighbouring rings are
+    joined by quads split into two triangles and the end rings are capped. Corners that
+    coincide (a collapsed edge, a tip) are merged, and the outside found by the volume's sign."""
+    import manifold3d as m3
+    rings = np.asarray(rings, dtype=np.float64)
+    k, m = rings.shape[:2]
+    x, y = rings[:, :, 0], rings[:, :, 1]
+    areas = (x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1)
+    if areas[np.argmax(np.abs(areas))] < 0:
+        rings = rings[:, ::-1]              # counter-clockwise seen from +z: the sides face out
+        areas = -areas
+    i = np.arange(m)
+    j = (i + 1) % m
+    faces = []
+    for s in range(k - 1):
+        lo, hi = s * m, (s + 1) * m
+        faces += [np.column_stack([lo + i, lo + j, hi + j]), np.column_stack([lo + i, hi + j, hi + i])]
+    scale = max(float(np.ptp(rings[:, :, :2].reshape(-1, 2), axis=0).max()), 1e-300)
+    for end, flip in ((0, True), (k - 1, False)):
+        if areas[end] <= 1e-14 * scale * scale:
+            continue                       # the polygon collapsed to a line or a point
+        cap = np.asarray(m3.triangulate([rings[end, :, :2]]), dtype=np.int64)
+        faces.append(end * m + (cap[:, ::-1] if flip else cap))
+    vertices, faces = weld(rings.reshape(-1, 3), np.vstack(faces))
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+    if signed_volume(vertices, faces) < 0:
+        faces = faces[:, ::-1]
+    return vertices, faces
+
+
 def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     """The volume a closed mesh encloses, negative when its triangles face inward."""
     v, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces)

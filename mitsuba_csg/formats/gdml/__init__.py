@@ -28,8 +28,9 @@ What is read
   the caps so no faces coincide; theta cuts are cones with their apex at the centre.
 * `<loop>`s (`loops`), and volumes placed many times by one element: replicavol,
   divisionvol, paramvol (`replicas`), expanded into copies as Geant4 places them.
-* Not representable exactly by our primitives: arb8, twisted*, genericPolycone, genericPolyhedra, reflectedSolid, opticalsurface-bound solids,
-  and `physvol file=`. `on_unsupported="error"` raises a
+* genericPolycone, genericPolyhedra (exact frusta), reflectedSolid; arb8 and the twisted
+  solids as swept-polygon meshes (`twisted`). Not read: `physvol file=`, radial replicas,
+  divisions of other solids than boxes. `on_unsupported="error"` raises a
   FormatError naming the element and its name; `"skip"` warns (UserWarning) and leaves the solid
   out, together with every boolean built from it and every volume made of it.
 

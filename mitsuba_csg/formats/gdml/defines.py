@@ -89,8 +89,12 @@ def vector(doc, el, kind: str) -> np.ndarray:
     if kind == "scale":
         return np.array([doc.number(el, a, 1.0) for a in "xyz"])
     default = "mm" if kind == "position" else "rad"
-    unit = doc.unit(el, "unit" if el.get("unit") is not None else
-                    ("lunit" if kind == "position" else "aunit"), default)
+    stray = "lunit" if kind == "position" else "aunit"
+    if el.get("unit") is None and el.get(stray) is not None:
+        # Geant4 (G4GDMLReadDefine::VectorRead) reads only `unit` here; we place what it places.
+        doc.warn(el, f'{stray}="{el.get(stray)}" is not read on a <{el.tag}> (Geant4 reads only unit=); '
+                     f"its values are in {default}")
+    unit = doc.unit(el, "unit", default)
     return np.array([doc.number(el, a, 0.0, unit) for a in "xyz"])
 
 

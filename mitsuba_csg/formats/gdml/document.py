@@ -90,6 +90,13 @@ class Document:
             self.warned.add(text)
             warnings.warn(text + "; skipped", UserWarning, stacklevel=4)
 
+    def warn(self, el, message: str):
+        """A UserWarning naming the element, once per message."""
+        text = f"{self.where(el)}: {message}"
+        if text not in self.warned:
+            self.warned.add(text)
+            warnings.warn(text, UserWarning, stacklevel=4)
+
     def register(self, table, el, what):
         name = el.get("name")
         if not name:

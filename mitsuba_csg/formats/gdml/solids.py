@@ -14,21 +14,18 @@ import numpy as np
 
 from ...errors import ModelError
 from ...model import values
-from ...model.construct import frustum_chunk, inner_cone, phi_cut, theta_cut
-from ...model.mesh import Mesh, orient_consistently, signed_volume, weld
+from ...model.construct import frustum_chunk, inner_cone, phi_cut, rz_sections, theta_cut
+from ...model.mesh import Mesh, orient_consistently, ruled_mesh, signed_volume, weld
 from ...model.nodes import Node, Operation
 from ...model.polyhedra import hull_planes
 from ...model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Hyperboloid, Paraboloid, Sphere, Torus
 from ..reading import FormatError
 from .defines import affine, placement, rotation_matrix, vector
 from .expressions import TWO_PI
+from .twisted import generic_trap_rings, generic_trap_twist, twisted_trap_rings, twisted_tubs_rings
 
 # Solids we know Geant4 has but cannot represent exactly with our primitives.
-UNSUPPORTED_SOLIDS = (
-    "arb8", "twistedbox", "twistedtrd", "twistedtrap", "twistedtubs",
-    "genericPolycone", "genericPolyhedra", "reflectedSolid", "loop",
-    "gencone",
-)
+UNSUPPORTED_SOLIDS = ("gencone",)
 _BOOLEANS = {"union": "union", "subtraction": "difference", "intersection": "intersection"}
 
 
@@ -54,6 +51,10 @@ class Solids:
                 if child is None or not child.get("ref"):
                     self.doc.fail(node, "needs <solid ref=\"...\"/>")
                 refs.append((child, child.get("ref")))
+        elif tag == "reflectedSolid":
+            if not el.get("solid"):
+                self.doc.fail(el, "needs a solid attribute")
+            refs.append((el, el.get("solid")))
         elif tag == "scaledSolid":
             child = el.find("solidref")
             if child is None or not child.get("ref"):
@@ -241,7 +242,31 @@ class Solids:
 
     def _solid_polycone(self, el):
         lunit, aunit = self._units(el)
-        planes, sections = self._zplanes(el, lunit)
+        _, sections = self._zplanes(el, lunit)
+        return self._polycone(el, sections, *self._phi(el, aunit))
+
+    def _rz_points(self, el, lunit):
+        """The (r, z) polygon of a generic polycone or polyhedra (Geant4 takes either winding)."""
+        points = [(self.doc.number(p, "r", None, lunit), self.doc.number(p, "z", None, lunit))
+                  for p in el.findall("rzpoint")]
+        if len(points) < 3:
+            self.doc.fail(el, f"needs at least 3 <rzpoint> elements, got {len(points)}")
+        if min(r for r, _ in points) < 0:
+            self.doc.fail(el, "rzpoint r values must be >= 0")
+        r, z = np.array(points).T
+        if abs(np.dot(r, np.roll(z, -1)) - np.dot(np.roll(r, -1), z)) <= 1e-12 * (np.ptp(r) + np.ptp(z)) ** 2:
+            self.doc.fail(el, "the (r, z) polygon encloses no area")
+        sections = rz_sections(points)
+        if not sections:
+            self.doc.fail(el, "the (r, z) polygon encloses no volume")
+        return sections
+
+    def _solid_genericPolycone(self, el):
+        lunit, aunit = self._units(el)
+        return self._polycone(el, self._rz_points(el, lunit), *self._phi(el, aunit))
+
+    def _polycone(self, el, sections, phi0, dphi):
+        """The union of the frustum shells of polycone sections, cut to the phi range."""
         pieces = []
         for (z0, rmin0, rmax0), (z1, rmin1, rmax1) in sections:
             h = z1 - z0
@@ -251,23 +276,38 @@ class Solids:
                 piece = piece - inner
             pieces.append(piece.translate((0.0, 0.0, 0.5 * (z0 + z1))))
         solid = pieces[0] if len(pieces) == 1 else Operation("union", pieces)
-        rmax = max(p[2] for p in planes)
-        zreach = max(abs(planes[0][0]), abs(planes[-1][0]))
-        return phi_cut(solid, *self._phi(el, aunit), rmax, zreach)
+        rmax = max(max(a[2], b[2]) for a, b in sections)
+        zreach = max(max(abs(a[0]), abs(b[0])) for a, b in sections)
+        return phi_cut(solid, phi0, dphi, rmax, zreach)
 
-    def _solid_polyhedra(self, el):
-        lunit, aunit = self._units(el)
+    def _sides(self, el):
         sides = self.doc.number(el, "numsides")
         if sides != int(sides) or not 1 <= sides <= 10_000:
             self.doc.fail(el, f"numsides: expected a whole number in 1..10000, got {sides:g}")
-        sides = int(sides)
+        return int(sides)
+
+    def _solid_polyhedra(self, el):
+        lunit, aunit = self._units(el)
+        _, sections = self._zplanes(el, lunit)
+        return self._polyhedra(el, self._sides(el), *self._phi(el, aunit), sections)
+
+    def _solid_genericPolyhedra(self, el):
+        """G4Polyhedra from (r, z) corners: r is the corner radius there (the z-plane form's
+        rmax is the apothem), so each r becomes r cos(half a side's angle)."""
+        lunit, aunit = self._units(el)
+        sides = self._sides(el)
         phi0, dphi = self._phi(el, aunit)
+        k = math.cos(0.5 * dphi / sides)
+        sections = [tuple((z, k * rmin, k * rmax) for z, rmin, rmax in section)
+                    for section in self._rz_points(el, lunit)]
+        return self._polyhedra(el, sides, phi0, dphi, sections)
+
+    def _polyhedra(self, el, sides, phi0, dphi, sections):
         full = dphi >= TWO_PI - 1e-12
         step = dphi / sides
         if step >= math.pi - 1e-9:
             self.doc.fail(el, f"each side spans {math.degrees(step):g} deg; a polyhedra side must span less than 180")
-        planes, sections = self._zplanes(el, lunit)
-        scale = max(max(p[2] for p in planes), max(abs(p[0]) for p in planes), 1e-9)
+        scale = max(max(max(a[2], b[2], abs(a[0]), abs(b[0])) for a, b in sections), 1e-9)
         per_chunk = sides if full else max(1, int(math.floor((math.pi - 1e-9) / step)))
         chunks = [range(k, min(k + per_chunk, sides)) for k in range(0, sides, per_chunk)]
         pieces = []
@@ -400,13 +440,85 @@ class Solids:
         except ModelError as e:
             self.doc.fail(el, str(e))
 
+    # ---- Twisted solids and generic trapezoids as swept-polygon meshes (`twisted`) ----
+
+    def _solid_arb8(self, el):
+        lunit, _ = self._units(el)
+        dz = self._positive(el, "dz", lunit)
+        vertices = np.array([[self.doc.number(el, f"v{k}{a}", None, lunit) for a in "xy"] for k in range(1, 9)])
+        size = max(float(np.ptp(vertices, axis=0).max()), 2.0 * dz)
+        twisted = generic_trap_twist(dz, vertices) > 1e-9 * size
+        if not twisted:
+            corners = [(x, y, z) for (x, y), z in zip(vertices, [-dz] * 4 + [dz] * 4)]
+            try:
+                hull = ConvexPolyhedron(hull_planes(corners, max_faces=6))
+            except ModelError:
+                hull = None
+        solid = self._mesh(el, *ruled_mesh(generic_trap_rings(dz, vertices, twisted)))
+        if not twisted and hull is not None and math.isclose(
+                signed_volume(solid.vertices, solid.faces), _hull_volume(corners), rel_tol=1e-9):
+            return hull                        # a convex arb8: the exact (and cheaper) polyhedron
+        return solid
+
+    def _twisted_trap(self, el, twist, dz, theta, phi, y1, x1, x2, y2, x3, x4, alpha):
+        return self._mesh(el, *ruled_mesh(twisted_trap_rings(twist, dz, theta, phi, y1, x1, x2, y2, x3, x4, alpha)))
+
+    def _solid_twistedbox(self, el):
+        lunit, aunit = self._units(el)
+        x, y, z = (0.5 * self._positive(el, a, lunit) for a in "xyz")
+        return self._twisted_trap(el, self.doc.number(el, "PhiTwist", None, aunit), z, 0.0, 0.0, y, x, x, y, x, x, 0.0)
+
+    def _solid_twistedtrd(self, el):
+        lunit, aunit = self._units(el)
+        x1, x2, y1, y2 = (0.5 * self._positive(el, a, lunit) for a in ("x1", "x2", "y1", "y2"))
+        z = 0.5 * self._positive(el, "z", lunit)
+        return self._twisted_trap(el, self.doc.number(el, "PhiTwist", None, aunit), z, 0.0, 0.0, y1, x1, x1, y2, x2, x2,
+                                  0.0)
+
+    def _solid_twistedtrap(self, el):
+        lunit, aunit = self._units(el)
+        h = {a: 0.5 * self._positive(el, a, lunit) for a in ("z", "y1", "x1", "x2", "y2", "x3", "x4")}
+        ang = {a: self.doc.number(el, a, 0.0, aunit) for a in ("PhiTwist", "Theta", "Phi", "Alph")}
+        return self._twisted_trap(el, ang["PhiTwist"], h["z"], ang["Theta"], ang["Phi"], h["y1"], h["x1"], h["x2"],
+                                  h["y2"], h["x3"], h["x4"], ang["Alph"])
+
+    def _solid_twistedtubs(self, el):
+        """G4TwistedTubs from its end radii and length (or its radii at z = 0 and the two end z),
+        the sector angle `phi` (or `totphi` / `nseg`)."""
+        lunit, aunit = self._units(el)
+        twist = self.doc.number(el, "twistedangle", None, aunit)
+        if not 0 < abs(twist) < math.pi:
+            self.doc.fail(el, f"twistedangle must lie strictly between 0 and 180 degrees, got {twist:g} rad")
+        if el.get("phi") is not None:
+            dphi = self._positive(el, "phi", aunit)
+        else:
+            dphi = self._positive(el, "totphi", aunit) / self._positive(el, "nseg", 1.0)
+        if el.get("endinnerrad") is not None:
+            half = 0.5 * self._positive(el, "zlen", lunit)
+            shrink = math.cos(0.5 * twist)                 # end radius -> radius at z = 0
+            inner = self._positive(el, "endinnerrad", lunit) * shrink
+            outer = self._positive(el, "endouterrad", lunit) * shrink
+            z0, z1 = -half, half
+        else:
+            inner = self._positive(el, "midinnerrad", lunit)
+            outer = self._positive(el, "midouterrad", lunit)
+            z0, z1 = self.doc.number(el, "negativeEndz", None, lunit), self.doc.number(el, "positiveEndz", None, lunit)
+            if not z0 < z1:
+                self.doc.fail(el, f"needs negativeEndz < positiveEndz, got {z0:g} and {z1:g}")
+        if not inner < outer or dphi >= TWO_PI:
+            self.doc.fail(el, "needs an inner radius below the outer one and phi below 360 degrees")
+        return self._mesh(el, *ruled_mesh(twisted_tubs_rings(twist, inner, outer, z0, z1, dphi)))
+
     def _solid_ellipsoid(self, el):
         lunit, _ = self._units(el)
         ax, by, cz = (self._positive(el, a, lunit) for a in ("ax", "by", "cz"))
         zcut1, zcut2 = self.doc.number(el, "zcut1", 0.0, lunit), self.doc.number(el, "zcut2", 0.0, lunit)
-        # G4Ellipsoid: a cut of 0 means "no cut"; cuts beyond the surface are clamped.
-        lo = -cz if zcut1 == 0 else max(-cz, zcut1)
-        hi = cz if zcut2 == 0 else min(cz, zcut2)
+        # G4Ellipsoid (Geant4 11): only both cuts 0 mean "no cut" (one cut alone keeps the other
+        # at z = 0); cuts beyond the surface are clamped.
+        if zcut1 == 0 and zcut2 == 0:
+            lo, hi = -cz, cz
+        else:
+            lo, hi = max(-cz, zcut1), min(cz, zcut2)
         if lo >= hi:
             self.doc.fail(el, f"zcut1 ({zcut1:g}) must be below zcut2 ({zcut2:g}) inside the ellipsoid")
         solid = Sphere(1.0).scale((ax, by, cz))
@@ -445,15 +557,14 @@ class Solids:
         inst = self._nonnegative(el, "inst", aunit, 0.0)
         outst = self._nonnegative(el, "outst", aunit, 0.0)
         z = self._positive(el, "z", lunit)
-        if max(inst, outst) >= 0.5 * math.pi:
-            self.doc.fail(el, "stereo angles must be below 90 degrees")
-        solid = Hyperboloid.from_stereo(rmax, outst, z)
-        inner_end = math.hypot(rmin, math.tan(inst) * 0.5 * z)
-        if inner_end >= solid.radius_end or rmin >= rmax:
+        # G4Hype uses tan^2 of the stereo angles only (a file may give 20 rad).
+        t_in, t_out = abs(math.tan(inst)), abs(math.tan(outst))
+        solid = Hyperboloid(rmax, math.hypot(rmax, t_out * 0.5 * z), z)
+        if math.hypot(rmin, t_in * 0.5 * z) >= solid.radius_end or rmin >= rmax:
             self.doc.fail(el, f"the inner surface (rmin {rmin:g}, inst {inst:g} rad) must lie inside the outer one "
                               f"(rmax {rmax:g}, outst {outst:g} rad)")
-        if rmin > 0 or inst > 0:
-            solid = solid - Hyperboloid.from_stereo(rmin, inst, 1.5 * z)
+        if rmin > 0 or t_in > 0:
+            solid = solid - Hyperboloid(rmin, math.hypot(rmin, t_in * 0.75 * z), 1.5 * z)
         return solid
 
     def _operand(self, ref_el) -> Node | None:
@@ -487,6 +598,20 @@ class Solids:
             self.doc.fail(el, "needs at least one <multiUnionNode>")
         return Operation("union", parts)
 
+    def _solid_reflectedSolid(self, el):
+        """G4ReflectedSolid: the solid under G4Transform3D(R, d) * G4Scale3D(s), x' = R (s x) + d."""
+        solid = self.solids[el.get("solid")]
+        if solid is None:
+            self.doc.unsupported(el, "built from a skipped solid")
+            return None
+        lunit, aunit = self._units(el)
+        scale = np.array([self.doc.number(el, a, 1.0) for a in ("sx", "sy", "sz")])
+        if np.any(scale == 0):
+            self.doc.fail(el, f"scale factors must be non-zero, got {scale.tolist()}")
+        angles = [self.doc.number(el, a, 0.0, aunit) for a in ("rx", "ry", "rz")]
+        offset = [self.doc.number(el, a, 0.0, lunit) for a in ("dx", "dy", "dz")]
+        return solid.transform(affine(rotation_matrix(angles) @ np.diag(scale), offset))
+
     def _solid_scaledSolid(self, el):
         solid = self._operand(el.find("solidref"))
         if solid is None:
@@ -496,3 +621,8 @@ class Solids:
         if np.any(s == 0):
             self.doc.fail(el, f"scale factors must be non-zero, got {s.tolist()}")
         return solid.scale(s)
+
+
+def _hull_volume(points) -> float:
+    import manifold3d as m3
+    return m3.Manifold.hull_points(np.asarray(points, dtype=np.float64)).volume()
