@@ -18,8 +18,16 @@ or the colour's name for `color("red")`), `cube(size, center)`, `sphere(r | d)`,
 leaf), and 2D outlines extruded: `square`, `circle` (with OpenSCAD's `$fn`/`$fa`/`$fs`
 fragments), `polygon(points, paths)`, their 2D unions, differences, intersections and
 placements, under `linear_extrude(height, center, twist, slices, scale)` or
-`rotate_extrude(angle)`, as mesh leaves (`formats.openscad_2d`); `hull()` and `minkowski()`
-(of convex operands) of OpenSCAD's faceted solids, as convex polyhedra. The modifiers `#` (highlight)
+`rotate_extrude(angle)` (an outline wholly at x <= 0 sweeps as its mirror; one across the axis
+is dropped with a warning, as OpenSCAD reports it and renders the rest), as mesh leaves
+(`formats.openscad_2d`); `offset(r | delta, chamfer)` (Clipper's joins, as OpenSCAD) and
+`resize(newsize, auto)` (OpenSCAD's scale rule, measured on our exact solid); `text()`, whose
+glyphs OpenSCAD itself draws where it is installed (`formats.openscad_tool`); `hull()` and
+`minkowski()` of OpenSCAD's faceted solids: convex polyhedra from the facet points of
+unions, placements and primitives, and otherwise (differences, extrusions, non-convex
+operands) manifold3d's hull and Minkowski sum of the faceted subtree, a mesh leaf. Malformed
+polyhedra (open, inconsistently oriented, bad indices) are dropped with a warning, as OpenSCAD
+drops them. `.scad` sources are evaluated by OpenSCAD first (`load_scad`). The modifiers `#` (highlight)
 and `!` (root: that subtree alone is the model, as in OpenSCAD) keep their subtree; `%`
 (background) and `*` (disabled) drop it. The 3D solids are the exact analytic ones, not
 OpenSCAD's `$fn`/`$fa`/`$fs` facets; a 2D circle is OpenSCAD's polygon, as OpenSCAD renders
@@ -35,7 +43,7 @@ operand. A model that ends up empty is a `FormatError`.
 
 Files are untrusted input: every problem is a `FormatError` (a `ModelError`) whose message
 starts with the file, line and column, e.g. `model.csg: line 3, column 5: sphere: r must be a
-finite number, got inf`. Unsupported nodes (`offset`, `text`, `import`, `resize`, ...) are
+finite number, got inf`. Unsupported nodes (`import`, `projection`, `surface`, ...) are
 refused by name, or skipped with a warning when `on_unsupported="skip"`.
 File size, statement count and nesting depth are bounded; parsing and evaluation use
 explicit stacks, never deep recursion.
@@ -44,6 +52,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import os
 import re
 import warnings
 
@@ -65,13 +74,13 @@ MAX_STATEMENTS = 10_000_000        # statements in one file
 
 SUPPORTED_NODES = ("group", "union", "render", "difference", "intersection", "multmatrix", "color",
                    "cube", "sphere", "cylinder", "polyhedron", "square", "circle", "polygon", "linear_extrude",
-                   "rotate_extrude", "hull", "minkowski")
+                   "rotate_extrude", "hull", "minkowski", "text", "offset", "resize")
 UNSUPPORTED_NODES = {
     # 2D primitives and operations
-    "text": "a 2D primitive", "import": "imported geometry", "projection": "a 2D operation",
-    "offset": "a 2D operation", "roof": "a 2D-to-3D operation", "fill": "a 2D operation",
+    "import": "imported geometry", "projection": "a 2D operation",
+    "roof": "a 2D-to-3D operation", "fill": "a 2D operation",
     # 3D nodes mitsuba-csg cannot represent exactly
-    "surface": "a height-map mesh", "resize": "a size-dependent transform",
+    "surface": "a height-map mesh",
 }
 
 __all__ = ["FormatError", "OpenSCADWarning", "load", "loads", "SUPPORTED_NODES", "UNSUPPORTED_NODES"]
@@ -353,6 +362,8 @@ _POSITIONAL = {
     "polyhedron": ("points", "faces", "convexity"), "multmatrix": ("m",), "color": ("c", "alpha"),
     "render": ("convexity",), "square": ("size", "center"), "circle": ("r",), "polygon": ("points", "paths"),
     "linear_extrude": ("height",), "rotate_extrude": ("angle",),
+    "text": ("text", "size", "font", "halign", "valign", "spacing", "direction", "language", "script"),
+    "offset": ("r",), "resize": ("newsize",),
 }
 _KNOWN_ARGS = {
     "cube": {"size", "center"}, "sphere": {"r", "d"},
@@ -363,6 +374,8 @@ _KNOWN_ARGS = {
     "square": {"size", "center"}, "circle": {"r", "d"}, "polygon": {"points", "paths", "convexity"},
     "linear_extrude": {"height", "center", "convexity", "twist", "slices", "scale", "segments", "v"},
     "rotate_extrude": {"angle", "convexity"}, "hull": set(), "minkowski": {"convexity"},
+    "text": {"text", "size", "font", "halign", "valign", "spacing", "direction", "language", "script"},
+    "offset": {"r", "delta", "chamfer"}, "resize": {"newsize", "auto", "convexity"},
 }
 _FACETS = {"$fn": 0.0, "$fs": 2.0, "$fa": 12.0}         # OpenSCAD's defaults
 
@@ -493,6 +506,10 @@ class _Evaluator:
                 return self.minkowski(st, kids)
             if name in ("linear_extrude", "rotate_extrude"):
                 return self.extrude(st, args, self.combine(st, UNION, kids, flat_context=True))
+            if name == "offset":
+                return self.offset(st, args, self.combine(st, UNION, kids, flat_context=True))
+            if name == "resize":
+                return self.resize(st, args, self.combine(st, UNION, kids))
         except FormatError:
             raise
         except ModelError as e:
@@ -550,6 +567,77 @@ class _Evaluator:
             return EMPTY
         return flat.combine(kind, [k for k in kids if k is not EMPTY])
 
+    def offset(self, st, args, body):
+        if isinstance(body, _Nothing):
+            return body
+        r = self.number(st, args, "r", None)
+        delta = self.number(st, args, "delta", None)
+        if r is None and delta is None:
+            r = 1.0                                      # OpenSCAD's default: offset(r = 1)
+        fn, fs, fa = self.facets(st)
+        shape = flat.offset(body, r, delta if r is None else None, self.flag(st, args, "chamfer"), fn, fs, fa)
+        return EMPTY if flat.is_empty(shape) else shape
+
+    def resize(self, st, args, body):
+        """OpenSCAD's resize: each axis with a new size > 0 scaled to it; with `auto`, the others
+        by the scale of the largest new size; the rest kept. The sizes are of our exact solid
+        (OpenSCAD measures its facets: round children differ by their sagitta)."""
+        if isinstance(body, _Nothing):
+            return body
+        flat_body = isinstance(body, flat.Shape2D)
+        dims = 2 if flat_body else 3
+        newsize = self.sizes(st, args, "newsize", dims)
+        auto = self.auto(st, args, dims)
+        if flat_body:
+            x0, y0, x1, y1 = body.section.bounds()
+            size = np.array([x1 - x0, y1 - y0])
+        else:
+            lo, hi = body.bounds()
+            size = hi - lo
+        big = int(np.argmax(newsize))
+        scale = np.where(newsize > 0, newsize / np.where(size > 0, size, 1.0), 1.0)
+        scale = np.where(~auto | (newsize > 0), scale, scale[big])
+        if np.any(scale <= 0) or not np.all(np.isfinite(scale)):
+            self.src.warn(st.pos, "resize: a zero size cannot be resized; OpenSCAD makes nothing of it")
+            return EMPTY
+        if flat_body:
+            return flat.scaled(body, float(scale[0]), float(scale[1]))
+        return body.scale(tuple(float(v) for v in scale))
+
+    def sizes(self, st, args, key, dims) -> np.ndarray:
+        value, pos = args.get(key, (None, st.pos))
+        if isinstance(value, float) and not isinstance(value, bool):
+            value = [value] * dims
+        if not (isinstance(value, list) and 2 <= len(value) <= 3 and
+                all(isinstance(x, float) and not isinstance(x, bool) and math.isfinite(x) for x in value)):
+            self.src.fail(pos, f"{st.name}: {key} must be a number or a vector of {dims}, got {_show(value)}")
+        return np.array((list(value) + [0.0])[:dims])
+
+    def auto(self, st, args, dims) -> np.ndarray:
+        value, pos = args.get("auto", (False, st.pos))
+        if isinstance(value, bool):
+            return np.full(dims, value)
+        if isinstance(value, float):
+            return np.full(dims, value != 0)
+        if isinstance(value, list) and all(isinstance(x, (bool, float)) for x in value):
+            return np.array([bool(x) for x in (list(value) + [False] * 3)[:dims]])
+        self.src.fail(pos, f"resize: auto must be true, false or a vector of them, got {_show(value)}")
+
+    def make_text(self, st, args):
+        """text(): the glyph outline OpenSCAD itself draws (`formats.openscad_tool`)."""
+        from . import openscad_tool
+        call = "text(" + ", ".join(f"{key} = {_scad(value)}" for key, value, _ in st.args
+                                   if key is not None and (key in _KNOWN_ARGS["text"] or key in _FACETS)) + ")"
+        try:
+            section = openscad_tool.text_outline(call, f"{self.src.name}: {self.src.where(st.pos)}")
+        except openscad_tool.OpenSCADMissing as e:
+            if self.on_unsupported == "skip":
+                self.src.warn(st.pos, f"text: skipped (OpenSCAD, which draws its glyphs, is not installed)")
+                return EMPTY
+            raise FormatError(str(e)) from None
+        shape = flat.Shape2D(section)
+        return EMPTY if flat.is_empty(shape) else shape
+
     # -- hull and minkowski: of OpenSCAD's faceted solids, as OpenSCAD computes them --
     def hull(self, st, kids):
         operands = [k for k in kids if not isinstance(k, _Nothing)]
@@ -557,7 +645,11 @@ class _Evaluator:
             return EMPTY            # as OpenSCAD: a hull of nothing is empty geometry, not no operand
         if all(isinstance(k, flat.Shape2D) for k in operands):
             return flat.hull_2d(operands)
-        return self.convex(st, self.subtree_points(st, "hull"))
+        try:
+            points = self.subtree_points(st, "hull")
+        except _NeedsMesh:
+            points = _vertices(self.facet_manifold(st))
+        return self.convex(st, points)
 
     def minkowski(self, st, kids):
         operands = [k for k in kids if not isinstance(k, _Nothing)]
@@ -572,8 +664,20 @@ class _Evaluator:
                     self.src.fail(st.pos, "minkowski: of 2D operands that are not convex is not supported")
                 sets.append(np.asarray(polygons[0], dtype=np.float64))
             return flat.minkowski_2d_convex(sets)
-        sets = [self.subtree_points(c, "minkowski", convex=True) for c in st.children
-                if not _suppressed(c) and c.name not in ("echo", "assert")]
+        live = [c for c in st.children if not _suppressed(c) and c.name not in ("echo", "assert")]
+        try:
+            sets = [self.subtree_points(c, "minkowski", convex=True) for c in live]
+        except _NeedsMesh:
+            # A non-convex operand: manifold3d's Minkowski sum of OpenSCAD's facets, a mesh leaf.
+            total = None
+            for c in live:
+                piece = self.facet_manifold(c)
+                if piece.is_empty():
+                    continue
+                total = piece if total is None else total.minkowski_sum(piece)
+            if total is None or total.is_empty():
+                return EMPTY
+            return Mesh.from_manifold(total)
         sets = [p for p in sets if len(p)]
         total = sets[0]
         for pts in sets[1:]:
@@ -604,8 +708,7 @@ class _Evaluator:
             live = [c for c in node.children if not _suppressed(c)]
             if name in (None, "group", "union", "render", "color", "multmatrix", "hull"):
                 if convex and name != "hull" and len(live) > 1:
-                    self.src.fail(node.pos, f"{what}: of a union of several solids is not supported "
-                                            "(only convex operands: primitives and hulls)")
+                    raise _NeedsMesh(node)
                 if name == "multmatrix":
                     m = m @ self.matrix(node, self.arguments(node))
                 stack.extend((c, m, convex and name != "hull") for c in live)
@@ -614,9 +717,81 @@ class _Evaluator:
                 if len(pts):
                     out.append(pts @ m[:3, :3].T + m[:3, 3])
             else:
-                self.src.fail(node.pos, f"{what}: {name} inside it is not supported (unions, placements, hulls "
-                                        "and 3D primitives are)")
+                raise _NeedsMesh(node)
         return np.vstack(out) if out else np.zeros((0, 3))
+
+    def facet_manifold(self, root):
+        """OpenSCAD's faceted solid of a 3D statement subtree as a manifold3d Manifold: its
+        primitives with OpenSCAD's facets, booleans, placements, hulls and Minkowski sums as
+        manifold3d computes them; other nodes (extrusions, resize, ...) evaluated as usual and
+        meshed (their mesh leaves exactly; analytic solids at 64 segments)."""
+        import manifold3d as m3
+        results: dict[int, object] = {}
+        stack = [(root, False)]
+        while stack:
+            st, done = stack.pop()
+            name = st.name
+            if _suppressed(st) or name in ("echo", "assert"):
+                results[id(st)] = None
+                continue
+            structural = name in (None, "group", "union", "render", "color", "multmatrix", "difference",
+                                  "intersection", "hull", "minkowski")
+            if structural and not done:
+                stack.append((st, True))
+                stack.extend((c, False) for c in reversed(st.children))
+                continue
+            kids = [results.pop(id(c)) for c in st.children] if structural else []
+            kids = [k for k in kids if k is not None]
+            if name in ("sphere", "cylinder", "cube"):
+                pts = self.primitive_points(st, False)
+                results[id(st)] = m3.Manifold.hull_points(pts) if len(pts) >= 4 else None
+            elif name == "polyhedron" or not structural:
+                node = self.subtree_node(st)
+                results[id(st)] = None if isinstance(node, (_Nothing, flat.Shape2D)) else _manifold(node)
+            elif not kids:
+                results[id(st)] = None
+            elif name == "difference":
+                out = kids[0]
+                for k in kids[1:]:
+                    out = out - k
+                results[id(st)] = out
+            elif name == "intersection":
+                out = kids[0]
+                for k in kids[1:]:
+                    out = out ^ k
+                results[id(st)] = out
+            elif name == "hull":
+                results[id(st)] = m3.Manifold.hull_points(np.vstack([_vertices(k) for k in kids]))
+            elif name == "minkowski":
+                out = kids[0]
+                for k in kids[1:]:
+                    out = out.minkowski_sum(k)
+                results[id(st)] = out
+            else:
+                out = m3.Manifold.batch_boolean(kids, m3.OpType.Add) if len(kids) > 1 else kids[0]
+                if name == "multmatrix":
+                    m = self.matrix(st, self.arguments(st))
+                    out = out.transform(np.asarray(m[:3, :4], dtype=np.float64))
+                results[id(st)] = out
+        out = results[id(root)]
+        return out if out is not None else m3.Manifold()
+
+    def subtree_node(self, st):
+        """The evaluation of one statement and its subtree (as `evaluate`, from `st`)."""
+        results: dict[int, object] = {}
+        stack = [(st, False)]
+        while stack:
+            node, done = stack.pop()
+            if _suppressed(node):
+                results[id(node)] = NULL
+                continue
+            if not done and node.children and not self.is_unsupported(node):
+                stack.append((node, True))
+                stack.extend((c, False) for c in reversed(node.children))
+                continue
+            kids = [results.pop(id(c)) for c in node.children] if done else []
+            results[id(node)] = self.node(node, kids)
+        return results[id(st)]
 
     def primitive_points(self, st, convex: bool) -> np.ndarray:
         args = self.arguments(st)
@@ -666,9 +841,15 @@ class _Evaluator:
         fn, fs, fa = self.facets(st)
         if st.name == "rotate_extrude":
             angle = self.number(st, args, "angle", 360.0)
-            (x0, _, _, _) = body.section.bounds()
-            if x0 < -1e-9 * max(1.0, abs(x0)):
-                self.src.fail(st.pos, "rotate_extrude: the outline must lie at x >= 0 (OpenSCAD refuses it too)")
+            (x0, _, x1, _) = body.section.bounds()
+            tol = 1e-9 * max(1.0, abs(x0), abs(x1))
+            if x0 < -tol and x1 > tol:
+                # OpenSCAD reports an error for this node and renders the rest.
+                self.src.warn(st.pos, f"rotate_extrude: the outline spans x = {x0:g} .. {x1:g}, both sides of the "
+                                      f"axis; OpenSCAD makes nothing of it")
+                return EMPTY
+            if x1 <= tol and x0 < -tol:
+                body = flat.scaled(body, -1.0, 1.0)         # all at x <= 0: the mirror image sweeps the same
             if angle == 0:
                 self.src.warn(st.pos, "rotate_extrude: angle 0 sweeps nothing")
                 return EMPTY
@@ -797,6 +978,11 @@ class _Evaluator:
         cone = Cone(r1, r2, h)
         return cone if self.flag(st, args, "center") else cone.translate((0.0, 0.0, h / 2))
 
+    def malformed(self, pos, problem: str):
+        """A polyhedron OpenSCAD reports and leaves out (it renders the rest of the file)."""
+        self.src.warn(pos, f"polyhedron: {problem}; OpenSCAD makes nothing of it")
+        return EMPTY
+
     def make_polyhedron(self, st, args):
         points = args.get("points", (None, st.pos))
         faces = args.get("faces") or args.get("triangles") or (None, st.pos)
@@ -808,23 +994,23 @@ class _Evaluator:
                 isinstance(p, list) and len(p) == 3 and
                 all(isinstance(x, float) and not isinstance(x, bool) and math.isfinite(x) for x in p)
                 for p in pts)):
-            self.src.fail(points[1], "polyhedron: points must be a list of [x, y, z] with finite numbers")
+            return self.malformed(points[1], "points must be a list of [x, y, z] with finite numbers")
         fl = faces[0]
         if not (isinstance(fl, list) and all(isinstance(f, list) for f in fl)):
-            self.src.fail(faces[1], "polyhedron: faces must be a list of lists of point indices")
+            return self.malformed(faces[1], "faces must be a list of lists of point indices")
         index_faces = []
         for k, f in enumerate(fl):
             if not all(isinstance(x, float) and math.isfinite(x) and x == int(x) for x in f):
-                self.src.fail(faces[1], f"polyhedron: face {k} must hold integer point indices, got {_show(f)}")
+                return self.malformed(faces[1], f"face {k} must hold integer point indices, got {_show(f)}")
             idx = [int(x) for x in f]
             bad = [x for x in idx if not 0 <= x < len(pts)]
             if bad:
-                self.src.fail(faces[1], f"polyhedron: face {k} refers to point {bad[0]}, but there are "
-                                        f"{len(pts)} points (0..{len(pts) - 1})")
+                return self.malformed(faces[1], f"face {k} refers to point {bad[0]}, but there are "
+                                                f"{len(pts)} points (0..{len(pts) - 1})")
             # drop consecutive repeats (including the closing one)
             idx = [x for j, x in enumerate(idx) if x != idx[j - 1]] if len(idx) > 1 else idx
             if len(idx) < 3:
-                self.src.fail(faces[1], f"polyhedron: face {k} has fewer than 3 distinct points")
+                return self.malformed(faces[1], f"face {k} has fewer than 3 distinct points")
             index_faces.append(idx)
         planes, problem = convex_planes(np.array(pts, dtype=np.float64), index_faces)
         if not problem and len(planes) <= ConvexPolyhedron.MAX_PLANES:
@@ -837,9 +1023,29 @@ class _Evaluator:
             try:
                 return Mesh(np.array(pts, dtype=np.float64), np.array(triangles))
             except ModelError as e:
-                line = self.src.line(st.pos)
-                self.src.fail(st.pos, f"polyhedron at line {line} is neither a closed convex solid nor a closed "
-                                      f"mesh: {e}")
+                # OpenSCAD drops it too ("The given mesh is not closed!") and renders the rest.
+                self.src.warn(st.pos, f"polyhedron: neither a closed convex solid nor a closed, consistently "
+                                      f"oriented mesh ({e}); OpenSCAD makes nothing of it")
+                return EMPTY
+
+
+class _NeedsMesh(Exception):
+    """A hull or Minkowski operand that is not unions, placements and primitives (or not convex)."""
+
+
+def _vertices(manifold) -> np.ndarray:
+    return np.asarray(manifold.to_mesh64().vert_properties, dtype=np.float64)[:, :3]
+
+
+def _manifold(node: Node):
+    """A model node as a manifold3d Manifold: a mesh leaf exactly, anything else tessellated."""
+    import manifold3d as m3
+    if isinstance(node, Mesh):
+        solid = m3.Manifold(m3.Mesh(vert_properties=np.asarray(node.vertices, np.float32),
+                                    tri_verts=np.asarray(node.faces, np.uint32)))
+        return solid.transform(np.asarray(node.matrix[:3, :4], dtype=np.float64))
+    from .mesh_export import to_mesh
+    return to_mesh(node, 64)
 
 
 def _suppressed(st: _Statement) -> bool:
@@ -864,6 +1070,22 @@ def _combine(kind: str, kids: list):
             return EMPTY
         nodes = [k for k in kids if k is not EMPTY]
     return nodes[0] if len(nodes) == 1 else Operation(kind, nodes)
+
+
+def _scad(value) -> str:
+    """A parsed argument value written back as OpenSCAD source."""
+    if value is None:
+        return "undef"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, str):
+        escaped = value.replace("\\", "\\\\").replace('"', '\\"')
+        return '"' + escaped.replace("\n", "\\n").replace("\t", "\\t").replace("\r", "\\r") + '"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_scad(v) for v in value) + "]"
+    raise FormatError(f"cannot write {value!r} as OpenSCAD source")
 
 
 def _show(value, limit: int = 60) -> str:
@@ -910,6 +1132,16 @@ def loads(text: str | bytes, source: str = "<string>", *, on_unsupported: str = 
         raise FormatError(f"{source}: the model is empty (no solid geometry"
                           f"{'' if result is NULL else ': every solid is degenerate or removed'})")
     return result
+
+
+def load_scad(path, *, on_unsupported: str = "error") -> Node:
+    """Read an OpenSCAD source (`.scad`): OpenSCAD evaluates it to its CSG tree (`openscad -o
+    model.csg model.scad`, `formats.openscad_tool`), which `loads` reads. Without OpenSCAD
+    installed, a CSGError says how to install it or export the tree elsewhere."""
+    from . import openscad_tool
+    text = openscad_tool.export_csg(path)
+    name = os.path.basename(os.fspath(path))
+    return loads(text, f"{name} (as OpenSCAD's .csg export)", on_unsupported=on_unsupported)
 
 
 def load(path, *, on_unsupported: str = "error") -> Node:

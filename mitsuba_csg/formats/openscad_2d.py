@@ -68,6 +68,23 @@ def transform(shape: Shape2D, matrix: np.ndarray) -> Shape2D:
     return Shape2D(shape.section.transform(m))
 
 
+def offset(shape: Shape2D, r: float | None, delta: float | None, chamfer: bool, fn: float, fs: float,
+           fa: float) -> Shape2D:
+    """OpenSCAD's offset(): by `r` with round corners of OpenSCAD's fragments for |r|, or by
+    `delta` with sharp (mitred) corners, cut square when `chamfer` (Clipper's joins, as
+    OpenSCAD uses them)."""
+    import manifold3d as m3
+    if r is not None:
+        n = fragments(abs(r), fn, fs, fa)
+        return Shape2D(shape.section.offset(r, m3.JoinType.Round, 2.0, n))
+    join = m3.JoinType.Square if chamfer else m3.JoinType.Miter
+    return Shape2D(shape.section.offset(delta, join, 1e6, 0))
+
+
+def scaled(shape: Shape2D, sx: float, sy: float) -> Shape2D:
+    return Shape2D(shape.section.scale((sx, sy)))
+
+
 def is_empty(shape: Shape2D) -> bool:
     return shape.section.is_empty() or shape.section.area() <= 0.0
 
