@@ -50,12 +50,30 @@ def _set_variant(name: str | None):
     return mi, csg
 
 
-def _load_model(path: str):
+def _load_model(path: str, **options):
     import mitsuba_csg as csg
     p = Path(path)
     if not p.exists():
         raise CLIError(f"{path}: no such file")
-    return csg.load(p)
+    return csg.load(p, **options)
+
+
+def _load_options(args, path: str) -> dict:
+    """Reader options from the command line: --skip-unsupported (GDML, OpenSCAD), --depth and
+    --world (GDML)."""
+    suffix = Path(path).suffix.lower()
+    options = {}
+    if getattr(args, "skip_unsupported", False):
+        if suffix not in (".gdml", ".csg", ".scad"):
+            raise CLIError(f"{path}: --skip-unsupported applies to GDML and OpenSCAD files")
+        options["on_unsupported"] = "skip"
+    gdml_only = {"depth": getattr(args, "depth", None), "show_world": getattr(args, "world", None) or None,
+                 "hide": getattr(args, "hide", None)}
+    if suffix != ".gdml" and any(v is not None for v in gdml_only.values()):
+        raise CLIError(f"{path}: --depth, --world and --hide apply to GDML detectors")
+    if suffix == ".gdml":
+        options.update({k: v for k, v in gdml_only.items() if k != "hide" and v is not None})
+    return options
 
 
 def demo_scene_dict(mi, csg, width, height, spp, integrator):
@@ -65,21 +83,40 @@ def demo_scene_dict(mi, csg, width, height, spp, integrator):
                             colour=[0.85, 0.65, 0.25])
 
 
-def model_scene_dict(mi, csg, model, width, height, spp, integrator, colour=(0.7, 0.7, 0.72)):
-    """A model on a floor, framed by a camera, lit by a sky and a sun."""
+def model_scene_dict(mi, csg, model, width, height, spp, integrator, colour=None):
+    """A model on a floor, framed by a camera, lit by a sky and a sun; each material in its colour
+    (`viewing.material_colour`), or all in `colour`."""
+    from . import viewing
+    default = viewing.bsdf((*colour, 1.0) if colour is not None else viewing.material_colour(None))
+    return scene_dict(mi, csg, [(model, {} if colour is not None else viewing.material_bsdfs(model), default)],
+                      width, height, spp, integrator)
+
+
+def scene_dict(mi, csg, parts, width, height, spp, integrator):
+    """Mitsuba's dict for csg shapes `parts` [(model, {material: bsdf}, default bsdf)] on a floor,
+    framed by a camera whose clip planes follow the scene's size (a 40 m detector in mm too)."""
+    import numpy as np
+
     from .camera import framing
-    lower, upper = model.bounds()
+    boxes = np.array([part[0].bounds() for part in parts])
+    lower, upper = boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)
     origin, target = framing(lower, upper, 40.0, width / height)
     size = float((upper - lower).max())
+    distance = float(np.linalg.norm(origin - target))
+    shapes = {}
+    for k, (model, bsdfs, default) in enumerate(parts):
+        shape = {"type": "csg", "model": csg.model_ref(model), "bsdf": default}
+        shape.update({name: value for name, value in bsdfs.items()})
+        shapes[f"model{k}" if k else "model"] = shape
     return {
         "type": "scene",
         "integrator": {"type": integrator, "max_depth": 6} if integrator != "csg_aov" else {"type": "csg_aov"},
         "sensor": {"type": "perspective", "fov": 40.0, "fov_axis": "x",
+                   "near_clip": 1e-4 * distance, "far_clip": distance + 10.0 * size,
                    "to_world": mi.ScalarTransform4f().look_at(origin.tolist(), target.tolist(), [0, 0, 1]),
                    "film": {"type": "hdrfilm", "width": width, "height": height},
                    "sampler": {"type": "independent", "sample_count": spp}},
-        "model": {"type": "csg", "model": csg.model_ref(model),
-                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(colour)}}},
+        **shapes,
         "floor": {"type": "rectangle",
                   "to_world": mi.ScalarTransform4f().translate([float(target[0]), float(target[1]), float(lower[2])])
                   .scale(4.0 * size),
@@ -110,7 +147,7 @@ def _render(args) -> int:
             raise CLIError(f"{args.input}: {str(e).splitlines()[0]}") from e
         what = args.input
     elif args.input.lower().endswith(MODEL_SUFFIXES):
-        scene = mi.load_dict(model_scene_dict(mi, csg, _load_model(args.input), width, height, args.spp, integrator))
+        scene = mi.load_dict(scene_dict(mi, csg, _model_parts(args), width, height, args.spp, integrator))
         what = args.input
     elif args.input in BUILTIN_SCENES:
         model = BUILTIN_SCENES[args.input]()
@@ -146,6 +183,32 @@ def _render(args) -> int:
     print(f"rendered {what} at {width}x{height}, {args.spp} spp, in {elapsed:.1f} s -> "
           + ", ".join(str(p) for p in written))
     return 0
+
+
+def _model_parts(args):
+    """The csg shapes of a model file: a GDML detector's mothers see-through over its other
+    volumes, anything else one shape; cut by --cut, coloured per material."""
+    from . import viewing
+    cuts = [viewing.parse_cut(c) for c in (args.cut or [])]
+    options = _load_options(args, args.input)
+    if args.input.lower().endswith(".gdml"):
+        from .formats import gdml
+        if not Path(args.input).exists():
+            raise CLIError(f"{args.input}: no such file")
+        view = viewing.DetectorView(gdml.volumes(args.input, **options), hide=_names(args.hide))
+        mothers, solids = view.models(cuts)
+        parts = []
+        if solids is not None:
+            parts.append((solids, view.bsdfs(solids), viewing.bsdf(viewing.material_colour(None))))
+        if mothers is not None:
+            parts.append((mothers, {}, viewing.mother_bsdf()))
+        return parts
+    model = viewing.cut(_load_model(args.input, **options), cuts)
+    return [(model, viewing.material_bsdfs(model), viewing.bsdf(viewing.material_colour(None)))]
+
+
+def _names(text):
+    return [n.strip() for n in (text or "").split(",") if n.strip()]
 
 
 def _aov_list(text: str) -> tuple[str, ...]:
@@ -253,7 +316,7 @@ def parser() -> argparse.ArgumentParser:
     _global_options(common, argparse.SUPPRESS)
     sub = p.add_subparsers(dest="command")
     r = sub.add_parser("render", parents=[common], help="render a scene (.xml), a model file, or the built-in demo")
-    r.add_argument("input", nargs="?", help="scene .xml, model (.json/.gdml/.csg) or a built-in scene name "
+    r.add_argument("input", nargs="?", help="scene .xml, model (.json/.gdml/.csg/.scad/.stl/...) or a built-in scene name "
                    "(cheese-1000, city-3385, satellites-87.5k, ...); none: the demo Cheese")
     r.add_argument("-o", "--output", default="cheese.exr", help="output OpenEXR file (default: cheese.exr)")
     r.add_argument("--spp", type=_positive_int, default=16, help="samples per pixel (default 16)")
@@ -261,6 +324,15 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--integrator", default="csg_path", choices=["csg_path", "csg_aov", "csg_prb"])
     r.add_argument("--passes", type=_positive_int, default=4, help="render in this many passes (progress)")
     r.add_argument("--png", action="store_true", help="also write a tonemapped sRGB .png preview")
+    r.add_argument("--cut", action="append", metavar="AXIS>VALUE",
+                   help="keep the part of the model beyond a plane, e.g. x>0 or z<10 (repeatable): a cut-away")
+    r.add_argument("--skip-unsupported", action="store_true",
+                   help="GDML, OpenSCAD: leave out unsupported solids and nodes (with a warning) instead of failing")
+    r.add_argument("--depth", type=int, default=None, metavar="K",
+                   help="GDML: volumes at most K placement levels below the world")
+    r.add_argument("--world", action="store_true", default=None, help="GDML: show the world volume too")
+    r.add_argument("--hide", metavar="NAMES", default=None,
+                   help="GDML: comma-separated logical volume names or materials to leave out")
     r.add_argument("--aov", nargs="?", type=_aov_list, const=DEFAULT_AOVS, default=None, metavar="LIST",
                    help="add geometric layers to the EXR: comma-separated from depth, normal, position, prim, "
                         f"shape (no LIST: {','.join(DEFAULT_AOVS)})")

@@ -148,3 +148,69 @@ def test_global_options_around_an_implied_render(tmp_path, capsys):
     assert run(MODEL, "--size", "8x8", "--spp", "1", "-o", out, "--verbose") == 0
     with pytest.raises(Exception):                  # --verbose after the command still re-raises
         run("info", tmp_path / "missing.json", "--verbose")
+
+
+DETECTOR = """<?xml version="1.0"?>
+<gdml><define/><materials>
+  <material name="Fe" Z="26"><D value="7.87"/><atom value="55.85"/></material>
+  <material name="Air" Z="7"><D value="0.0012"/><atom value="14.0"/></material></materials>
+<solids><box name="W" x="200" y="200" z="200" lunit="m"/><box name="Hall" x="40" y="40" z="40" lunit="m"/>
+  <box name="Shell" x="30" y="30" z="30" lunit="m"/><orb name="Core" r="8" lunit="m"/></solids>
+<structure>
+  <volume name="core"><materialref ref="Fe"/><solidref ref="Core"/></volume>
+  <volume name="shell"><materialref ref="Fe"/><solidref ref="Shell"/>
+    <physvol><volumeref ref="core"/></physvol></volume>
+  <volume name="hall"><materialref ref="Air"/><solidref ref="Hall"/>
+    <physvol><volumeref ref="shell"/></physvol></volume>
+  <volume name="World"><materialref ref="Air"/><solidref ref="W"/>
+    <physvol><volumeref ref="hall"/></physvol></volume>
+</structure><setup name="Default" version="1.0"><world ref="World"/></setup></gdml>"""
+
+
+def test_a_detector_renders_as_geant4_draws_it(tmp_path):
+    """A 40 m detector in mm (beyond Mitsuba's default far clip): its air hall is not drawn, the
+    shell holding the core is see-through, the core solid; a cut-away x > 0 halves them and its
+    face has the volume's material; --hide and --depth drop volumes."""
+    from mitsuba_csg import viewing
+    from mitsuba_csg.formats import gdml
+    path = tmp_path / "det.gdml"
+    path.write_text(DETECTOR)
+    view = viewing.DetectorView(gdml.volumes(path))
+    mothers, solids = view.models([viewing.parse_cut("x>0")])
+    assert [leaf.material for leaf in solids.leaves()] == ["Fe", "Fe"]            # the core and its cut box
+    assert mothers is not None and "Air" not in {leaf.material for leaf in mothers.leaves()}
+    inside = np.array([[1000.0, 0, 0], [-1000.0, 0, 0], [12000.0, 0, 0]])
+    assert csg_contains(solids, inside).tolist() == [True, False, False]
+    assert csg_contains(mothers, inside).tolist() == [True, False, True]
+    out = tmp_path / "det.exr"
+    assert run("render", path, "--size", "32x18", "--spp", "2", "--cut", "x>0", "--aov", "depth", "-o", out) == 0
+    depth = read_exr(out)["depth"]
+    assert 1e4 < depth[9, 16] < 2e5                  # the detector is there, tens of metres away (in mm)
+    assert run("render", path, "--size", "16x9", "--spp", "1", "--hide", "shell", "--depth", "3",
+               "-o", tmp_path / "h.exr") == 0
+
+
+def csg_contains(model, points):
+    import mitsuba_csg as csg
+    return csg.contains(model, points)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["render", str(MODEL), "--depth", "2"], "--depth, --world and --hide apply to GDML"),
+    (["render", str(MODEL), "--skip-unsupported"], "--skip-unsupported applies to GDML and OpenSCAD"),
+    (["render", str(MODEL), "--cut", "w>0"], "expected AXIS>VALUE or AXIS<VALUE"),
+])
+def test_view_options_are_checked(argv, message, capsys):
+    assert run(*argv, "--size", "8x8", "--spp", "1") == 2
+    assert message in capsys.readouterr().err
+
+
+def test_materials_get_distinct_colours():
+    from mitsuba_csg import viewing
+    import mitsuba_csg as csg
+    model = csg.union(csg.Sphere(1, material="G4_Pb"), csg.Sphere(1, material="G4_lAr").translate((3, 0, 0)),
+                      csg.Box(1, material="color_1_0_0_1").translate((6, 0, 0)))
+    table = viewing.material_bsdfs(model)
+    colours = [tuple(table[k]["reflectance"]["value"]) for k in ("G4_Pb", "G4_lAr")]
+    assert colours[0] != colours[1] and max(abs(a - b) for a, b in zip(*colours)) > 0.2
+    assert table["color_1_0_0_1"]["reflectance"]["value"] == [1.0, 0.0, 0.0]

@@ -185,8 +185,8 @@ def test_copies_place_their_volume_many_times(tmp_path):
     path = tmp_path / "p.gdml"
     path.write_text(world('<physvol><volumeref ref="row"/></physvol>', vols.format(params), row))
     placed = gdml.volumes(path)
-    assert [level for _, level in placed] == [1, 2, 2]
-    m = csg.union(*[node for node, level in placed if level == 2])     # the copies, without their mother
+    assert [v.level for v in placed] == [1, 2, 2] and [v.name for v in placed] == ["row", "c", "c"]
+    m = csg.union(*[v.node for v in placed if v.level == 2])     # the copies, without their mother
     assert list(inside(m, [[-1.45, 0, 0], [-0.9, 0.3, 0], [1.0, 0.35, 0.45], [1.0, 0.45, 0]])) == \
         [True, False, True, False]
     for bad, pattern in ((replica.replace('x="1"/>', 'rho="1"/>'), "radial replicas"),

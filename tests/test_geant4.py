@@ -71,8 +71,8 @@ def assert_levels_agree_with_geant4(path, tmp, count=3000, seed=0):
     points = np.random.default_rng(seed).uniform(lo, hi, (count, 3))
     ours = np.zeros(count, dtype=np.int64)
     by_level = {}
-    for node, level in gdml.volumes(path):
-        by_level.setdefault(level, []).append(node)
+    for v in gdml.volumes(path):
+        by_level.setdefault(v.level, []).append(v.node)
     for level in sorted(by_level):          # deeper levels overwrite their mothers
         ours[csg.contains(csg.union(*by_level[level]), points)] = level
     o, d = points[:1], np.array([[1.0, 0.0, 0.0]])

@@ -61,10 +61,10 @@ from ..reading import FormatError, read_model_bytes
 from .document import Document
 from .expressions import UNITS
 from .solids import Solids
-from .structure import placed_volumes, scene
+from .structure import PlacedVolume, placed_volumes, scene
 from .xml_reader import MAX_FILE_BYTES, parse_xml
 
-__all__ = ["FormatError", "UNITS", "load", "loads", "volumes"]
+__all__ = ["FormatError", "PlacedVolume", "UNITS", "load", "loads", "volumes"]
 
 # ---- Entry points ----
 
@@ -101,9 +101,10 @@ def loads(text, source: str = "<string>", *, base_dir: str | None = None, solid:
 
 
 def volumes(path, *, depth: int | None = None, show_world: bool | None = None,
-            on_unsupported: str = "error") -> list[tuple[Node, int]]:
-    """The placed volumes of a GDML file one by one, each with its placement level (the world's
-    daughters are level 1): what `load` unites, for per-level work such as hiding mothers."""
+            on_unsupported: str = "error") -> list[PlacedVolume]:
+    """The placed volumes of a GDML file one by one (`PlacedVolume`: solid, placement level with
+    the world's daughters at 1, volume name, colour), in pre-order: what `load` unites, for
+    per-volume work such as drawing mothers see-through or hiding volumes by name."""
     path = os.fspath(path)
     _check_options(depth, on_unsupported, path)
     data, _ = read_model_bytes(path, MAX_FILE_BYTES)

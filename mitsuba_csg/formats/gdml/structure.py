@@ -6,6 +6,7 @@ G4Scale3D(s), so a daughter moves by x' = R^-1 (s x) + t.
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+from typing import NamedTuple
 
 import numpy as np
 
@@ -38,15 +39,24 @@ def _ref(doc, el, tag) -> tuple[ET.Element, str]:
     return child, child.get("ref")
 
 
+class PlacedVolume(NamedTuple):
+    """One placed copy of a logical volume: its solid in world coordinates (named with its
+    material), its placement level (the world is 0), the logical volume's name, and its colour
+    (R, G, B, A from a `colorref` of Geant4's simple extension) or None."""
+    node: Node
+    level: int
+    name: str
+    colour: tuple[float, float, float, float] | None
+
+
 def scene(doc, solids, depth: int | None, show_world: bool | None) -> Node:
     """The union of the placed volumes."""
-    placed = [node for node, _ in placed_volumes(doc, solids, depth, show_world)]
+    placed = [v.node for v in placed_volumes(doc, solids, depth, show_world)]
     return placed[0] if len(placed) == 1 else Operation("union", placed)
 
 
-def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> list[tuple[Node, int]]:
-    """Every placed volume (its solid in world coordinates) with its placement level, in a
-    depth-first pre-order walk (the world is level 0)."""
+def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> list[PlacedVolume]:
+    """Every placed volume in a depth-first pre-order walk."""
     world, world_el = world_name(doc)
     if world not in doc.volumes:
         doc.fail(world_el, f"refers to undefined volume {world!r}" +
@@ -54,7 +64,7 @@ def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> l
     if show_world is None:
         # A file of one volume (a phantom's organ, a test box) is that volume.
         show_world = not any(child.tag in _PLACING for child in doc.volumes[world])
-    placed: list[tuple[Node, int]] = []
+    placed: list[PlacedVolume] = []
     count = 0
     # (element, world matrix, depth, ancestors, the copy's own solid or None); assemblies are
     # expanded at the placing level
@@ -65,7 +75,8 @@ def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> l
         if not is_assembly and (level > 0 or show_world):
             node = _volume_solid(doc, solids, vol, own_solid)
             if node is not None:
-                placed.append((node if matrix is tf.IDENTITY else node.transform(matrix), level))
+                placed.append(PlacedVolume(node if matrix is tf.IDENTITY else node.transform(matrix), level,
+                                           _strip_pointer(vol.get("name", "")), _colour(doc, vol)))
         child_level = level if is_assembly else level + 1
         if depth is not None and child_level > depth:
             continue
@@ -124,6 +135,15 @@ def _volume_solid(doc, solids, vol, own_solid=None) -> Node | None:
         name = _strip_pointer(mat.get("ref"))
         node = node.with_material(name)
     return node
+
+
+def _colour(doc, vol):
+    ref = vol.find("colorref")
+    if ref is None or not ref.get("ref"):
+        return None
+    if ref.get("ref") not in doc.colours:
+        doc.fail(ref, f"refers to undefined color {ref.get('ref')!r}")
+    return doc.colours[ref.get("ref")]
 
 
 def _frozen(m):
