@@ -1,6 +1,10 @@
 """Render the gallery in docs/images/ (and docs/gallery.md) with csg_path.
 
     ./run.sh -- python docs/make_gallery.py [--spp 64] [--size 640x360]
+
+Generated scenes, five real GDML detectors (Geant4's and Celeritas' files copied into
+tests/data/gdml) drawn as `mitsuba-csg render` draws them, and five of OpenSCAD's bundled
+examples (CC0; read as .scad, so OpenSCAD must be installed: they are left out otherwise).
 """
 from __future__ import annotations
 
@@ -13,7 +17,9 @@ import mitsuba as mi
 
 import mitsuba_csg as csg
 from mitsuba_csg import scenes as generators
-from mitsuba_csg.cli import model_scene_dict
+from mitsuba_csg import viewing
+from mitsuba_csg.cli import model_scene_dict, scene_dict
+from mitsuba_csg.formats import openscad_tool
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -48,6 +54,25 @@ def detector():
     return gdml.loads(text, "detector.gdml")
 
 
+GDML = ROOT / "tests" / "data" / "gdml"
+EXAMPLES = Path("/usr/share/openscad/examples")
+# (name, caption, file, cut-aways)
+FILES = [
+    ("simple_cms", "Celeritas' simple CMS (GDML), cut away at y < 0", GDML / "simple-cms.gdml", ["y>0"]),
+    ("testem3", "Geant4's TestEm3 calorimeter (GDML): 50 lead / liquid argon layers, cut at y < 0",
+     GDML / "testem3.gdml", ["y>0"]),
+    ("lht", "Geant4's ChargeExchangeMC target and calorimeter (GDML, replicas), mothers see-through",
+     GDML / "lht.gdml", []),
+    ("tes", "Geant4's X-ray TES detector (GDML, tessellated solids)", GDML / "xray_TESdetector.gdml", []),
+    ("par02", "Geant4's Par02 detector (GDML), cut away at y < 0", GDML / "Par02FullDetector.gdml", ["y>0"]),
+    ("example001", "OpenSCAD's example001 (a sphere minus three cylinders)", EXAMPLES / "Old" / "example001.scad", []),
+    ("example024", "OpenSCAD's example024 (a Menger sponge)", EXAMPLES / "Old" / "example024.scad", []),
+    ("csg", "OpenSCAD's Basics/CSG", EXAMPLES / "Basics" / "CSG.scad", []),
+    ("candle_stand", "OpenSCAD's Parametric/candleStand (rotate_extrude)", EXAMPLES / "Parametric" / "candleStand.scad",
+     []),
+    ("logo", "OpenSCAD's Basics/logo", EXAMPLES / "Basics" / "logo.scad", []),
+]
+
 ITEMS = [
     ("cheese", "The paper's Cheese: a cube minus 1000 spheres", lambda: generators.cheese(1000)),
     ("city", "A City of 3400 primitives (boxes, prisms, cones; windows subtracted)", lambda: generators.city(340)),
@@ -64,9 +89,21 @@ def main():
     width, height = (int(v) for v in args.size.split("x"))
     lines = ["# Gallery", "", f"Rendered by `docs/make_gallery.py` with `csg_path`, {args.spp} spp, "
              f"{width}x{height}, on the machine of `docs/benchmarks.md`.", ""]
-    for name, caption, make in ITEMS:
-        model = make()
-        scene = mi.load_dict(model_scene_dict(mi, csg, model, width, height, args.spp, "csg_path"))
+    work = [(name, caption, lambda make=make: [(make(), None, None)]) for name, caption, make in ITEMS]
+    for name, caption, path, cuts in FILES:
+        if not path.exists() or (path.suffix == ".scad" and openscad_tool.executable() is None):
+            print(f"{name}: skipped ({path} or OpenSCAD is missing)")
+            continue
+        work.append((name, caption, lambda path=path, cuts=cuts: viewing.model_parts(
+            path, [viewing.parse_cut(c) for c in cuts])))
+    for name, caption, make in work:
+        parts = make()
+        if parts[0][1] is None:                 # a generated model: one colour
+            model = parts[0][0]
+            scene = mi.load_dict(model_scene_dict(mi, csg, model, width, height, args.spp, "csg_path"))
+        else:
+            model = csg.union(*[part[0] for part in parts])
+            scene = mi.load_dict(scene_dict(mi, csg, parts, width, height, args.spp, "csg_path"))
         t0 = time.perf_counter()
         image = mi.render(scene)
         dr.eval(image)

@@ -186,25 +186,12 @@ def _render(args) -> int:
 
 
 def _model_parts(args):
-    """The csg shapes of a model file: a GDML detector's mothers see-through over its other
-    volumes, anything else one shape; cut by --cut, coloured per material."""
+    """The csg shapes of a model file (`viewing.model_parts`), with the command line's options."""
     from . import viewing
+    if not Path(args.input).exists():
+        raise CLIError(f"{args.input}: no such file")
     cuts = [viewing.parse_cut(c) for c in (args.cut or [])]
-    options = _load_options(args, args.input)
-    if args.input.lower().endswith(".gdml"):
-        from .formats import gdml
-        if not Path(args.input).exists():
-            raise CLIError(f"{args.input}: no such file")
-        view = viewing.DetectorView(gdml.volumes(args.input, **options), hide=_names(args.hide))
-        mothers, solids = view.models(cuts)
-        parts = []
-        if solids is not None:
-            parts.append((solids, view.bsdfs(solids), viewing.bsdf(viewing.material_colour(None))))
-        if mothers is not None:
-            parts.append((mothers, {}, viewing.mother_bsdf()))
-        return parts
-    model = viewing.cut(_load_model(args.input, **options), cuts)
-    return [(model, viewing.material_bsdfs(model), viewing.bsdf(viewing.material_colour(None)))]
+    return viewing.model_parts(args.input, cuts, _names(args.hide), **_load_options(args, args.input))
 
 
 def _names(text):

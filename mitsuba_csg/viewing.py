@@ -138,3 +138,25 @@ class DetectorView:
 
 def mother_bsdf() -> dict:
     return bsdf((0.75, 0.8, 0.9, MOTHER_OPACITY))
+
+
+def model_parts(path, cuts=(), hide=(), **load_options) -> list:
+    """The csg shapes a model file is shown with: [(model, {material: bsdf dict}, default bsdf
+    dict)] for `cli.scene_dict`. A GDML detector gives its see-through mothers and its solid
+    volumes (`DetectorView`), anything else one shape; `cuts` are `parse_cut` triples."""
+    from pathlib import Path
+    from .formats import load
+    if Path(path).suffix.lower() == ".gdml":
+        from .formats import gdml
+        view = DetectorView(gdml.volumes(path, **load_options), hide=hide)
+        mothers, solids = view.models(cuts)
+        parts = []
+        if solids is not None:
+            parts.append((solids, view.bsdfs(solids), bsdf(material_colour(None))))
+        if mothers is not None:
+            parts.append((mothers, {}, mother_bsdf()))
+        return parts
+    if hide:
+        raise CSGError(f"{path}: hiding volumes applies to GDML detectors")
+    model = cut(load(path, **load_options), cuts)
+    return [(model, material_bsdfs(model), bsdf(material_colour(None)))]

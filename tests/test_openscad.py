@@ -439,7 +439,8 @@ def test_syntax_details():
     }"""
     with pytest.warns(OpenSCADWarning, match="unknown argument 'label'"):
         m = load(text)
-    assert [type(leaf).__name__ for leaf in m.leaves()] == ["Sphere", "Box", "Sphere"]
+    # (the last sphere sets $fn = 8: OpenSCAD's faceted sphere)
+    assert [type(leaf).__name__ for leaf in m.leaves()] == ["Sphere", "Box", "ConvexPolyhedron"]
     assert m.leaves()[1].size == (0.5, 0.5, 0.5)
     assert load(b"\xef\xbb\xbfsphere(r = 2);").radius == 2           # bytes with a BOM
     # undef means the default
@@ -875,3 +876,22 @@ def test_scad_sources_are_evaluated_by_openscad(tmp_path, monkeypatch):
     with pytest.raises(csg.CSGError, match=r"part.scad: an OpenSCAD source .*`openscad -o part.csg part.scad`.*"
                                            r"apt-get install openscad"):
         csg.load(src)
+
+
+def test_explicit_low_fn_makes_openscads_polygon_solids():
+    """A cylinder with $fn = 6 is a nut trap: OpenSCAD's hexagonal prism, corners on +x; with
+    $fn = 0 (OpenSCAD's $fa/$fs default) or a large $fn, the round cylinder."""
+    nut = load("cylinder($fn = 6, $fa = 12, $fs = 2, h = 2, r = 3, center = true);")
+    assert isinstance(nut, csg.ConvexPolyhedron)
+    assert csg.to_mesh(nut).volume() == pytest.approx(3 * math.sqrt(3) / 2 * 9 * 2)     # hexagon area x h
+    hits = csg.trace(nut, [[10.0, 0, 0], [0, 10.0, 0]], [[-1.0, 0, 0], [0, -1.0, 0]])
+    assert np.allclose(hits.t, [7.0, 10.0 - 3 * math.sqrt(3) / 2])                      # a corner, an edge
+    for text in ("cylinder($fn = 0, $fa = 12, $fs = 2, h = 2, r = 3);", "cylinder($fn = 64, h = 2, r = 3);"):
+        assert isinstance(load(text).leaves()[0], csg.Cone)
+    ball = load("sphere($fn = 8, r = 2);")
+    assert isinstance(ball, csg.ConvexPolyhedron)
+    assert csg.to_mesh(ball).volume() < 4 / 3 * math.pi * 8
+    assert isinstance(load("sphere($fn = 8, r = 2);", facets="exact"), csg.Sphere)
+    assert isinstance(load("sphere($fn = 0, r = 2);", facets="openscad"), csg.ConvexPolyhedron)
+    with pytest.raises(ModelError, match="facets"):
+        load("sphere(r = 1);", facets="round")

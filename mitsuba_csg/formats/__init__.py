@@ -38,8 +38,8 @@ def _save_mesh(model, path, **options):
 
 FORMATS = {
     ".json": Format("mitsuba-csg native JSON", native_json.load, (), native_json.save, ("materials",)),
-    ".csg": Format("OpenSCAD .csg", openscad.load, ("on_unsupported",)),
-    ".scad": Format("OpenSCAD source (evaluated by OpenSCAD)", openscad.load_scad, ("on_unsupported",)),
+    ".csg": Format("OpenSCAD .csg", openscad.load, ("on_unsupported", "facets")),
+    ".scad": Format("OpenSCAD source (evaluated by OpenSCAD)", openscad.load_scad, ("on_unsupported", "facets")),
     ".gdml": Format("Geant4 GDML", gdml.load, ("solid", "depth", "show_world", "on_unsupported")),
     ".ply": Format("PLY mesh", _load_mesh, (), _save_mesh, ("segments",)),
     ".obj": Format("Wavefront OBJ mesh", _load_mesh, (), _save_mesh, ("segments",)),

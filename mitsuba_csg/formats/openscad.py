@@ -29,9 +29,11 @@ operands) manifold3d's hull and Minkowski sum of the faceted subtree, a mesh lea
 polyhedra (open, inconsistently oriented, bad indices) are dropped with a warning, as OpenSCAD
 drops them. `.scad` sources are evaluated by OpenSCAD first (`load_scad`). The modifiers `#` (highlight)
 and `!` (root: that subtree alone is the model, as in OpenSCAD) keep their subtree; `%`
-(background) and `*` (disabled) drop it. The 3D solids are the exact analytic ones, not
-OpenSCAD's `$fn`/`$fa`/`$fs` facets; a 2D circle is OpenSCAD's polygon, as OpenSCAD renders
-its extrusions. A twisted extrusion's side quads may be split along the other diagonal than
+(background) and `*` (disabled) drop it. Spheres and cylinders are the exact analytic solids,
+except where `$fn` is set explicitly to at most FACETED_FN (16): a `cylinder(r = 3, h = 2,
+$fn = 6)` is a nut trap, the hexagonal prism OpenSCAD builds (`facets="exact"` or
+`"openscad"` makes every one round or OpenSCAD's polygon); a 2D circle is OpenSCAD's polygon,
+as OpenSCAD renders its extrusions. A twisted extrusion's side quads may be split along the other diagonal than
 the OpenSCAD version at hand chooses.
 
 Semantics follow OpenSCAD: a cube has its corner at the origin unless `center = true`; a
@@ -378,12 +380,18 @@ _KNOWN_ARGS = {
     "offset": {"r", "delta", "chamfer"}, "resize": {"newsize", "auto", "convexity"},
 }
 _FACETS = {"$fn": 0.0, "$fs": 2.0, "$fa": 12.0}         # OpenSCAD's defaults
+# An explicit $fn up to this is a polygon the author wants (a nut trap's $fn = 6): such spheres
+# and cylinders are OpenSCAD's faceted solids. Larger $fn, and OpenSCAD's $fa/$fs defaults,
+# approximate a circle, which we trace exactly.
+FACETED_FN = 16
+FACET_MODES = ("auto", "exact", "openscad")
 
 
 class _Evaluator:
-    def __init__(self, src: _Source, on_unsupported: str):
+    def __init__(self, src: _Source, on_unsupported: str, facets: str = "auto"):
         self.src = src
         self.on_unsupported = on_unsupported
+        self.facet_mode = facets
 
     def arguments(self, st: _Statement) -> dict:
         names = _POSITIONAL.get(st.name, ())
@@ -959,11 +967,23 @@ class _Evaluator:
             return self.number(st, args, d_key, None) / 2
         return self.number(st, args, r_key, default)
 
+    def faceted(self, st) -> bool:
+        """Whether a round primitive is OpenSCAD's polygon solid rather than the exact one
+        (`facets`: 'auto' for an explicit $fn of at most FACETED_FN, 'openscad' always, 'exact' never)."""
+        if self.facet_mode == "exact":
+            return False
+        if self.facet_mode == "openscad":
+            return True
+        fn = self.facets(st)[0]
+        return 3 <= fn <= FACETED_FN
+
     def make_sphere(self, st, args):
         r = self.radius(st, args, "r", "d", 1.0)
         if r <= 0:
             self.src.warn(st.pos, f"sphere: radius {r:g} has no volume; OpenSCAD makes nothing of it")
             return EMPTY
+        if self.faceted(st):
+            return flat.convex_solid(flat.sphere_points(r, *self.facets(st)))
         return Sphere(r)
 
     def make_cylinder(self, st, args):
@@ -975,6 +995,8 @@ class _Evaluator:
             self.src.warn(st.pos, f"cylinder: h={h:g}, r1={r1:g}, r2={r2:g} has no volume; "
                                   "OpenSCAD makes nothing of it")
             return EMPTY
+        if self.faceted(st):
+            return flat.convex_solid(flat.cylinder_points(h, r1, r2, self.flag(st, args, "center"), *self.facets(st)))
         cone = Cone(r1, r2, h)
         return cone if self.flag(st, args, "center") else cone.translate((0.0, 0.0, h / 2))
 
@@ -1107,10 +1129,15 @@ def _show(value, limit: int = 60) -> str:
 
 # ---- Entry points ----
 
-def loads(text: str | bytes, source: str = "<string>", *, on_unsupported: str = "error") -> Node:
-    """The model of OpenSCAD `.csg` text; `source` names it in messages."""
+def loads(text: str | bytes, source: str = "<string>", *, on_unsupported: str = "error",
+          facets: str = "auto") -> Node:
+    """The model of OpenSCAD `.csg` text; `source` names it in messages. `facets`: 'auto' (an
+    explicit `$fn` <= FACETED_FN makes spheres and cylinders OpenSCAD's polygon solids, others
+    exact), 'exact' (always round) or 'openscad' (always OpenSCAD's facets)."""
     if on_unsupported not in ("error", "skip"):
         raise ModelError(f"on_unsupported: expected 'error' or 'skip', got {on_unsupported!r}")
+    if facets not in FACET_MODES:
+        raise ModelError(f"facets: expected one of {', '.join(FACET_MODES)}, got {facets!r}")
     if isinstance(text, (bytes, bytearray)):
         if len(text) > MAX_FILE_BYTES:
             raise FormatError(f"{source}: {len(text)} bytes is larger than the limit of {MAX_FILE_BYTES}")
@@ -1125,7 +1152,7 @@ def loads(text: str | bytes, source: str = "<string>", *, on_unsupported: str = 
         raise FormatError(f"{source}: {len(text)} characters is larger than the limit of {MAX_FILE_BYTES}")
     src = _Source(source, text.removeprefix("\ufeff"))
     statements = _Parser(src).parse()
-    result = _Evaluator(src, on_unsupported).evaluate(statements)
+    result = _Evaluator(src, on_unsupported, facets).evaluate(statements)
     if isinstance(result, flat.Shape2D):
         raise FormatError(f"{source}: the model is 2D (extrude it with linear_extrude or rotate_extrude)")
     if isinstance(result, _Nothing):
@@ -1134,21 +1161,21 @@ def loads(text: str | bytes, source: str = "<string>", *, on_unsupported: str = 
     return result
 
 
-def load_scad(path, *, on_unsupported: str = "error") -> Node:
+def load_scad(path, *, on_unsupported: str = "error", facets: str = "auto") -> Node:
     """Read an OpenSCAD source (`.scad`): OpenSCAD evaluates it to its CSG tree (`openscad -o
     model.csg model.scad`, `formats.openscad_tool`), which `loads` reads. Without OpenSCAD
     installed, a CSGError says how to install it or export the tree elsewhere."""
     from . import openscad_tool
     text = openscad_tool.export_csg(path)
     name = os.path.basename(os.fspath(path))
-    return loads(text, f"{name} (as OpenSCAD's .csg export)", on_unsupported=on_unsupported)
+    return loads(text, f"{name} (as OpenSCAD's .csg export)", on_unsupported=on_unsupported, facets=facets)
 
 
-def load(path, *, on_unsupported: str = "error") -> Node:
+def load(path, *, on_unsupported: str = "error", facets: str = "auto") -> Node:
     """Read an OpenSCAD `.csg` file (`openscad -o model.csg model.scad`).
 
     `on_unsupported="error"` (default) refuses 2D, extrusion and other unsupported nodes with
     a FormatError naming the node and line; `"skip"` drops them with an OpenSCADWarning.
     """
     raw, source = read_model_bytes(path, MAX_FILE_BYTES)
-    return loads(raw, source, on_unsupported=on_unsupported)
+    return loads(raw, source, on_unsupported=on_unsupported, facets=facets)
