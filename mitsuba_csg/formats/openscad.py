@@ -451,6 +451,8 @@ class _Evaluator:
     def evaluate(self, root: _Statement):
         """Post-order over the statement tree with an explicit stack; returns Node or NULL/EMPTY."""
         target = self.find_root(root)
+        if self.on_unsupported == "error":
+            self.refuse_unsupported(target)
         results: dict[int, object] = {}
         stack = [(target, False)]
         while stack:
@@ -483,6 +485,32 @@ class _Evaluator:
         if len(found) > 1:
             self.src.warn(found[1].pos, "more than one root modifier (!); using the first")
         return found[0] if found else root
+
+    def refuse_unsupported(self, root):
+        """One FormatError listing every unsupported node kind under `root` with its count:
+        the first one's place leads the message, each other kind names its first line."""
+        found: dict[str, list] = {}
+        stack = [root]
+        while stack:
+            st = stack.pop()
+            if _suppressed(st):
+                continue
+            if self.is_unsupported(st):
+                found.setdefault(st.name, []).append(st.pos)
+                continue
+            stack.extend(reversed(st.children))
+        if not found:
+            return
+        kinds = sorted(found.items(), key=lambda kv: kv[1][0])
+        name, places = kinds[0]
+        what = UNSUPPORTED_NODES.get(name)
+        text = f"{name} ({what}) is not supported by mitsuba-csg" if what else f"unknown node {name!r}"
+        if len(kinds) > 1 or len(places) > 1:
+            text += "; in all: " + ", ".join(
+                f"{n} x{len(p)}" + (f" (first at line {self.src.line(p[0])})" if i else "")
+                for i, (n, p) in enumerate(kinds))
+        self.src.fail(places[0], f"{text}; supported nodes: {', '.join(SUPPORTED_NODES)} "
+                                 f"(or load with on_unsupported='skip')")
 
     def is_unsupported(self, st) -> bool:
         return st.name is not None and st.name not in _KNOWN_ARGS
