@@ -453,20 +453,7 @@ class _Evaluator:
         target = self.find_root(root)
         if self.on_unsupported == "error":
             self.refuse_unsupported(target)
-        results: dict[int, object] = {}
-        stack = [(target, False)]
-        while stack:
-            st, children_done = stack.pop()
-            if _suppressed(st):
-                results[id(st)] = NULL
-                continue
-            if not children_done and st.children and not self.is_unsupported(st):
-                stack.append((st, True))
-                stack.extend((c, False) for c in reversed(st.children))
-                continue
-            kids = [results.pop(id(c)) for c in st.children] if children_done else []
-            results[id(st)] = self.node(st, kids)
-        return results[id(target)]
+        return self.subtree_node(target)
 
     def find_root(self, root: _Statement) -> _Statement:
         """The first `!` statement in document order outside disabled subtrees, else the file."""
@@ -813,7 +800,7 @@ class _Evaluator:
         return out if out is not None else m3.Manifold()
 
     def subtree_node(self, st):
-        """The evaluation of one statement and its subtree (as `evaluate`, from `st`)."""
+        """The evaluation of one statement and its subtree: post-order with an explicit stack."""
         results: dict[int, object] = {}
         stack = [(st, False)]
         while stack:
