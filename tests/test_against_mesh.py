@@ -111,7 +111,8 @@ FIXED = {
     "star-mesh-minus-sphere": (star_mesh_minus_sphere, SEGMENTS),
 }
 
-ROUND = (csg.Sphere, csg.Cone, csg.Torus)   # Cylinder is a Cone; Box, Prism, polyhedra are exact
+ROUND = (csg.Sphere, csg.Cone, csg.Torus, csg.Paraboloid, csg.Hyperboloid)   # Cylinder is a Cone; Box, Prism,
+#                                                                              polyhedra are exact
 
 
 # ---- Reference: the mesh in a Mitsuba scene ----

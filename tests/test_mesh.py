@@ -67,8 +67,10 @@ def test_primitive_volume(name, prim, volume):
     assert mesh.volume() == pytest.approx(volume, rel=REL)
     verts, faces = mesh_arrays(mesh)
     assert signed_volume(verts, faces) == pytest.approx(mesh.volume(), rel=1e-9)
-    # Round primitives are inscribed polyhedra: never larger than the solid.
-    assert mesh.volume() <= volume * (1.0 + 1e-9)
+    # Round primitives are inscribed polyhedra: never larger than the solid. (A hyperboloid's
+    # profile bulges inward, rho(z) being convex: its chords lie outside, a little larger.)
+    if not name.startswith(("hyperboloid", "double-cone")):
+        assert mesh.volume() <= volume * (1.0 + 1e-9)
 
 
 @pytest.mark.parametrize("name,prim,volume", PRIMITIVES, ids=[p[0] for p in PRIMITIVES])

@@ -227,7 +227,8 @@ def _primitive_mesh(prim: Node, n: int) -> m3.Manifold:
 
 def _revolved_quadric(prim, n: int) -> m3.Manifold:
     """A paraboloid or hyperboloid: its profile rho(z) revolved, sampled at n / 2 even steps in z
-    and at the z of n / 2 even steps in rho (a tip's rho changes fast: sqrt near it)."""
+    and at the z of n / 2 even steps in rho on each side (a tip's rho grows as a square root), so
+    that the profile's chords stray about as far as the circles' sagitta."""
     canonical, (a, b), _ = prim.canonical()
     r, half = canonical[0, 0], canonical[2, 2]
     c = 1.0 - a - abs(b)
@@ -243,18 +244,17 @@ def _revolved_quadric(prim, n: int) -> m3.Manifold:
     s = np.unique(np.concatenate([np.linspace(-1.0, 1.0, k + 1), steps]))
     s = s[np.concatenate([[True], np.diff(s) > 1e-9])]
     rho = r * np.sqrt(np.maximum(a * s * s + b * s + c, 0.0))
-    keep = rho > 1e-9 * r                      # a tip or a double cone's apex lies on the axis
-    profile = np.column_stack([rho[keep], half * s[keep]])
-    ends = []
-    if keep[0]:
-        ends.append([[0.0, -half]])
-    ends.append(profile)
-    if keep[-1]:
-        ends.append([[0.0, half]])
-    if not keep.all() and keep[0] and keep[-1]:         # the apex in the middle: two cones
-        mid = np.flatnonzero(~keep)[0]
-        ends = [[[0.0, -half]], profile[:mid], [[0.0, half * s[mid]]], profile[mid:], [[0.0, half]]]
-    polygon = np.vstack(ends)
+    # The outline runs up the axis' far side: from (0, -half) along the profile to (0, half).
+    # Profile points on the axis (a tip, a double cone's apex) are the axis points themselves.
+    on_axis = rho <= 1e-9 * r
+    points = [[0.0, -half]]
+    for k in range(len(s)):
+        if not on_axis[k]:
+            points.append([rho[k], half * s[k]])
+        elif 0 < k < len(s) - 1:
+            points.append([0.0, half * s[k]])
+    points.append([0.0, half])
+    polygon = np.array(points)
     return m3.Manifold.revolve(m3.CrossSection([polygon]), n)
 
 
