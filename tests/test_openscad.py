@@ -905,11 +905,24 @@ def test_explicit_low_fn_makes_openscads_polygon_solids():
 
 
 def test_an_error_lists_every_unsupported_node_kind():
-    text = ("group() {\n  cube(1);\n  import(file = \"a.stl\");\n  projection() cube(1);\n"
+    text = ("group() {\n  cube(1);\n  import(file = \"a.stl\");\n  roof() square(1);\n"
             "  import(file = \"b.stl\");\n  surface(file = \"h.dat\");\n}")
     with pytest.raises(FormatError) as info:
         load(text)
     message = str(info.value)
     assert message.startswith("t.csg: line 3, column 3: import (imported geometry) is not supported")
-    assert "in all: import x2, projection x1 (first at line 4), surface x1 (first at line 6)" in message
+    assert "in all: import x2, roof x1 (first at line 4), surface x1 (first at line 6)" in message
     assert message.count("line 3") == 1
+
+
+def test_projection_of_the_faceted_solid():
+    # the shadow of a unit cube turned 45 degrees about x: 1 x sqrt(2); its cut at z = 0: 1 x sqrt(2) too
+    cube = "multmatrix([[1, 0, 0, 0], [0, 0.70710678, -0.70710678, 0], [0, 0.70710678, 0.70710678, 0], [0, 0, 0, 1]]) " \
+           "cube(size = [1, 1, 1], center = true);"
+    shadow = load(f"linear_extrude(height = 1) projection() {cube}")
+    assert csg.to_mesh(shadow).volume() == pytest.approx(math.sqrt(2), rel=1e-6)
+    section = load(f"linear_extrude(height = 1) projection(cut = true) {cube}")
+    assert csg.to_mesh(section).volume() == pytest.approx(math.sqrt(2), rel=1e-6)
+    ball = load("linear_extrude(height = 1) projection(cut = true) "
+                "multmatrix([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.6], [0, 0, 0, 1]]) sphere(r = 1, $fn = 64);")
+    assert csg.to_mesh(ball).volume() == pytest.approx(math.pi * (1 - 0.36), rel=0.02)   # a circle of r 0.8

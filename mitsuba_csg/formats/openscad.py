@@ -21,7 +21,8 @@ placements, under `linear_extrude(height, center, twist, slices, scale)` or
 `rotate_extrude(angle)` (an outline wholly at x <= 0 sweeps as its mirror; one across the axis
 is dropped with a warning, as OpenSCAD reports it and renders the rest), as mesh leaves
 (`formats.openscad_2d`); `offset(r | delta, chamfer)` (Clipper's joins, as OpenSCAD) and
-`resize(newsize, auto)` (OpenSCAD's scale rule, measured on our exact solid); `text()`, whose
+`resize(newsize, auto)` (OpenSCAD's scale rule, measured on our exact solid); `projection(cut)`
+(the shadow, or the section at z = 0, of the faceted children); `text()`, whose
 glyphs OpenSCAD itself draws where it is installed (`formats.openscad_tool`); `hull()` and
 `minkowski()` of OpenSCAD's faceted solids: convex polyhedra from the facet points of
 unions, placements and primitives, and otherwise (differences, extrusions, non-convex
@@ -45,7 +46,7 @@ operand. A model that ends up empty is a `FormatError`.
 
 Files are untrusted input: every problem is a `FormatError` (a `ModelError`) whose message
 starts with the file, line and column, e.g. `model.csg: line 3, column 5: sphere: r must be a
-finite number, got inf`. Unsupported nodes (`import`, `projection`, `surface`, ...) are
+finite number, got inf`. Unsupported nodes (`import`, `surface`, `roof`, `fill`) are
 refused by name, or skipped with a warning when `on_unsupported="skip"`.
 File size, statement count and nesting depth are bounded; parsing and evaluation use
 explicit stacks, never deep recursion.
@@ -76,10 +77,10 @@ MAX_STATEMENTS = 10_000_000        # statements in one file
 
 SUPPORTED_NODES = ("group", "union", "render", "difference", "intersection", "multmatrix", "color",
                    "cube", "sphere", "cylinder", "polyhedron", "square", "circle", "polygon", "linear_extrude",
-                   "rotate_extrude", "hull", "minkowski", "text", "offset", "resize")
+                   "rotate_extrude", "hull", "minkowski", "text", "offset", "resize", "projection")
 UNSUPPORTED_NODES = {
     # 2D primitives and operations
-    "import": "imported geometry", "projection": "a 2D operation",
+    "import": "imported geometry",
     "roof": "a 2D-to-3D operation", "fill": "a 2D operation",
     # 3D nodes mitsuba-csg cannot represent exactly
     "surface": "a height-map mesh",
@@ -378,6 +379,7 @@ _KNOWN_ARGS = {
     "rotate_extrude": {"angle", "convexity"}, "hull": set(), "minkowski": {"convexity"},
     "text": {"text", "size", "font", "halign", "valign", "spacing", "direction", "language", "script"},
     "offset": {"r", "delta", "chamfer"}, "resize": {"newsize", "auto", "convexity"},
+    "projection": {"cut", "convexity"},
 }
 _FACETS = {"$fn": 0.0, "$fs": 2.0, "$fa": 12.0}         # OpenSCAD's defaults
 # An explicit $fn up to this is a polygon the author wants (a nut trap's $fn = 6): such spheres
@@ -533,6 +535,8 @@ class _Evaluator:
                 return self.offset(st, args, self.combine(st, UNION, kids, flat_context=True))
             if name == "resize":
                 return self.resize(st, args, self.combine(st, UNION, kids))
+            if name == "projection":
+                return self.projection(st, args, kids)
         except FormatError:
             raise
         except ModelError as e:
@@ -599,6 +603,20 @@ class _Evaluator:
             r = 1.0                                      # OpenSCAD's default: offset(r = 1)
         fn, fs, fa = self.facets(st)
         shape = flat.offset(body, r, delta if r is None else None, self.flag(st, args, "chamfer"), fn, fs, fa)
+        return EMPTY if flat.is_empty(shape) else shape
+
+    def projection(self, st, args, kids):
+        """OpenSCAD's projection(): the outline of the children's shadow on z = 0, or with
+        `cut = true` their section there; of OpenSCAD's faceted solids (manifold3d)."""
+        if not any(isinstance(k, Node) for k in kids):
+            return EMPTY if any(k is EMPTY for k in kids) else NULL
+        pieces = [self.facet_manifold(c) for c in st.children if not _suppressed(c)]
+        pieces = [p for p in pieces if not p.is_empty()]
+        if not pieces:
+            return EMPTY
+        import manifold3d as m3
+        solid = pieces[0] if len(pieces) == 1 else m3.Manifold.batch_boolean(pieces, m3.OpType.Add)
+        shape = flat.Shape2D(solid.slice(0.0) if self.flag(st, args, "cut") else solid.project())
         return EMPTY if flat.is_empty(shape) else shape
 
     def resize(self, st, args, body):
