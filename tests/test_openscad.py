@@ -784,8 +784,7 @@ LOADING_MODELS = [
     "thingiverse/thing-3767106-square-nut-to-ALU.scad", "thingiverse/thing-510700-test1.scad",
     # text (drawn by OpenSCAD), offset, resize, hulls and Minkowski sums of any solid, rotate_extrude
     # of outlines at x <= 0, malformed polyhedra dropped as OpenSCAD drops them
-    # (github/rugged-box.scad: every ray agrees, but our volume is 3.2 % larger; not yet explained)
-    "prusa-i3-mk3/lcd-supports.scad", "prusa-i3-mk3/x-end-idler.scad",
+    "github/rugged-box.scad", "prusa-i3-mk3/lcd-supports.scad", "prusa-i3-mk3/x-end-idler.scad",
     "prusa-i3-mk3/z-axis-bottom.scad", "keyv2/customizer.scad", "thingiverse/thing-1892322-outlet2.scad",
     "openscad-tests/hull3-tests.scad", "openscad-tests/minkowski3-tests.scad",
     "thingiverse/thing-3413835-Support-Foot-Adapter.scad", "thingiverse/thing-46887-MultiStand.scad",

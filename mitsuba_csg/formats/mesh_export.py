@@ -65,10 +65,22 @@ def to_mesh(model: Node, segments: int = 64) -> m3.Manifold:
             _, kind, operands, out, slot = item
             out[slot] = _boolean(operands, kind)
             continue
+        if item[0] == "transform":
+            _, matrix, local, out, slot = item
+            out[slot] = local[0].transform(np.ascontiguousarray(matrix[:3, :]))
+            continue
         _, node, parent, out, slot = item
         world = parent @ node.matrix
         if not isinstance(node, Operation):
             out[slot] = shapes.primitive(node, world)
+            continue
+        if np.linalg.det(world[:3, :3]) < 0:
+            # A mirrored Boolean is evaluated unmirrored and mirrored afterwards: manifold3d's
+            # Booleans of mirrored operands came out wrong on a real model (a 4-operand
+            # difference gave 5 % more volume than its own pairwise intersections allow).
+            local: list = [None]
+            work.append(("transform", world, local, out, slot))
+            work.append(("node", node, np.linalg.inv(node.matrix), local, 0))
             continue
         operands = _operands(node, world)
         if len(operands) == 1:                    # union(a), intersection(a), difference(a)
