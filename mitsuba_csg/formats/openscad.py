@@ -1093,12 +1093,7 @@ def _vertices(manifold) -> np.ndarray:
 
 
 def _manifold(node: Node):
-    """A model node as a manifold3d Manifold: a mesh leaf exactly, anything else tessellated."""
-    import manifold3d as m3
-    if isinstance(node, Mesh):
-        solid = m3.Manifold(m3.Mesh(vert_properties=np.asarray(node.vertices, np.float32),
-                                    tri_verts=np.asarray(node.faces, np.uint32)))
-        return solid.transform(np.asarray(node.matrix[:3, :4], dtype=np.float64))
+    """A model node as a manifold3d Manifold (`to_mesh`: mesh leaves exactly, round solids at 64 segments)."""
     from .mesh_export import to_mesh
     return to_mesh(node, 64)
 

@@ -83,12 +83,9 @@ class Document:
         raise FormatError(f"{self.where(el)}: {message}")
 
     def unsupported(self, el, message: str):
-        text = f"{self.where(el)}: {message}"
         if not self.skip_unsupported:
-            raise FormatError(text + " (on_unsupported='skip' leaves it out)")
-        if text not in self.warned:
-            self.warned.add(text)
-            warnings.warn(text + "; skipped", UserWarning, stacklevel=4)
+            raise FormatError(f"{self.where(el)}: {message} (on_unsupported='skip' leaves it out)")
+        self.warn(el, message + "; skipped")
 
     def warn(self, el, message: str):
         """A UserWarning naming the element, once per message."""

@@ -409,7 +409,6 @@ class Solids:
 
     def _solid_xtru(self, el):
         """A polygon swept through z sections, each scaled and offset (G4ExtrudedSolid)."""
-        import manifold3d as m3
         lunit, _ = self._units(el)
         polygon = np.array([[self.doc.number(v, a, None, lunit) for a in "xy"] for v in el.findall("twoDimVertex")])
         sections = sorted(((self.doc.number(sec, "zOrder", None), self.doc.number(sec, "zPosition", None, lunit),
@@ -418,20 +417,9 @@ class Solids:
         if len(polygon) < 3 or len(sections) < 2:
             self.doc.fail(el, f"an <xtru> needs at least 3 <twoDimVertex> and 2 <section>, got {len(polygon)} "
                           f"and {len(sections)}")
-        x, y = polygon[:, 0], polygon[:, 1]
-        if np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y) < 0:
-            polygon = polygon[::-1]                         # counter-clockwise, as the caps expect
-        n = len(polygon)
-        rings = [np.column_stack([scale * polygon + (dx, dy), np.full(n, z)]) for _, z, dx, dy, scale in sections]
-        i = np.arange(n)
-        j = (i + 1) % n
-        faces = []
-        for s in range(len(rings) - 1):
-            lo, hi = s * n, (s + 1) * n
-            faces += [np.column_stack([lo + i, lo + j, hi + j]), np.column_stack([lo + i, hi + j, hi + i])]
-        cap = np.asarray(m3.triangulate([polygon]), dtype=np.int64)
-        faces += [cap[:, ::-1], cap + (len(rings) - 1) * n]
-        return self._mesh(el, np.vstack(rings), np.vstack(faces))
+        rings = [np.column_stack([scale * polygon + (dx, dy), np.full(len(polygon), z)])
+                 for _, z, dx, dy, scale in sections]
+        return self._mesh(el, *ruled_mesh(np.array(rings)))
 
     def _mesh(self, el, vertices, faces):
         vertices, faces = weld(vertices, faces)
