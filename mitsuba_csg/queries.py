@@ -72,6 +72,12 @@ class RayHits:
     info: object = None  # UInt32: class, flip bit and face of the hit (engine.layout)
 
 
+def _broadcast_opaque(b, value: float, n: int):
+    # One opaque value read by every lane: a width-n opaque array would be filled in memory
+    # (a memset kernel per call), a literal would be compiled into the kernel.
+    return dr.opaque(b.Float, value) + dr.zeros(b.Float, n)
+
+
 def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf")) -> RayHits:
     """First hit of each ray o + t d, t in (tmin, tmax], on the CSG solid (Dr.Jit arrays)."""
     tree = prepared.tree
@@ -79,8 +85,8 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf")) -> RayHits
     o, d = b.Array3f(dr.detach(o)), b.Array3f(dr.detach(d))
     n = dr.width(o)
     # Opaque: a literal would be compiled into the kernel, and every new value would recompile it.
-    tmin = dr.opaque(b.Float, tmin, n) if isinstance(tmin, (int, float)) else b.Float(dr.detach(tmin))
-    tmax = dr.opaque(b.Float, tmax, n) if isinstance(tmax, (int, float)) else b.Float(dr.detach(tmax))
+    tmin = _broadcast_opaque(b, tmin, n) if isinstance(tmin, (int, float)) else b.Float(dr.detach(tmin))
+    tmax = _broadcast_opaque(b, tmax, n) if isinstance(tmax, (int, float)) else b.Float(dr.detach(tmax))
     t, leaf, info, finished, steps = traverse(tree, o, d, tmin, tmax)
     hit = leaf != K.NO_LEAF
     _, prim, _, _ = node_record(b, tree, leaf, hit)

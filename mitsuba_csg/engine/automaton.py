@@ -120,7 +120,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     #      see tests/test_drjit_workarounds.py) ----
     # Model-dependent numbers enter as opaque values, not literals: a literal is compiled into
     # the kernel, and every new model would compile a new one.
-    node = dr.opaque(b.UInt32, tree.root, n)       # operation node whose children are in play
+    node = dr.opaque(b.UInt32, tree.root) + dr.zeros(b.UInt32, n)   # operation node whose children are in play
     max_iterations = dr.opaque(b.UInt32, tree.max_iterations)
     t_start = b.Float(tmin)                         # re-intersection starts strictly after this
     t_l, leaf_l, info_l = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)

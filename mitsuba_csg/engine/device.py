@@ -15,7 +15,7 @@ import numpy as np
 from . import layout as K
 from .backend import Backend, owned
 from .lowering import FlatTree
-from ..errors import TreeTooDeepError
+from ..errors import ModelError, TreeTooDeepError
 
 MAX_STACK = 1024        # deepest tree the per-lane stacks are allocated for
 
@@ -112,11 +112,14 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     words = np.stack([flat.prim_plane_start, K.count_shape(flat.prim_plane_count, flat.prim_shape)], 1)
     prim_record[:, K.PRIM_PLANE_START:K.PRIM_COUNT_SHAPE + 1] = words.astype(np.uint32).view(np.float32)
     is_mesh = flat.prim_shape == K.MESH
-    prim_record[is_mesh, K.PRIM_PARAMS:K.PRIM_PARAMS + 2] = flat.prim_param[is_mesh].astype(np.uint32).view(np.float32)
+    mesh_nodes, mesh_refs = _mesh_node_records(flat)
+    # A mesh primitive's first param is its BVH root as a child ref (an inner node or a leaf).
+    mesh_roots = mesh_refs[flat.prim_param[is_mesh, 0].astype(np.int64)]
+    prim_record[is_mesh, K.PRIM_PARAMS] = mesh_roots.view(np.float32)
+    prim_record[is_mesh, K.PRIM_PARAMS + 1] = 0
     planes = flat.planes if len(flat.planes) else np.zeros((1, 4))
     triangles = flat.triangles if flat.triangles is not None and len(flat.triangles) else \
         np.zeros((1, K.TRIANGLE_FLOATS))
-    mesh_nodes = _mesh_node_records(flat)
     n_nodes = len(kind)
     root_corners = np.abs(np.concatenate([lower[root], upper[root]]))
     extent = float(np.max(root_corners[np.isfinite(root_corners)], initial=0.0))
@@ -143,19 +146,32 @@ def _box_pad(lower, upper):
     return np.where(np.isfinite(pad) & (upper >= lower), pad, 0.0)
 
 
-def _mesh_node_records(flat: FlatTree) -> np.ndarray:
-    """(K, 8) float32 mesh BVH node records (one dummy record when there are no meshes)."""
+def _mesh_node_records(flat: FlatTree) -> tuple[np.ndarray, np.ndarray]:
+    """(inner node records (I, 16) float32, child ref of every BVH node (K,) uint32).
+
+    The BVHs come in depth-first order (an inner node's left child is the next node); the
+    kernel reads one record per inner node with both children's boxes (`engine.layout`),
+    and a mesh primitive starts from its root's ref (one dummy record when there are no
+    meshes)."""
     if flat.mesh_right is None or not len(flat.mesh_right):
-        return np.zeros((1, K.MESH_NODE_FLOATS), np.float32)
+        return np.zeros((1, K.MESH_NODE_FLOATS), np.float32), np.zeros(0, np.uint32)
+    if np.any(flat.mesh_first >= 1 << (31 - K.MESH_COUNT_BITS)):
+        raise ModelError("mesh: too many triangles for the kernel's triangle index (2^27 at most)")
+    inner = flat.mesh_count == 0
+    rank = np.cumsum(inner) - 1
+    ref = np.where(inner, rank, K.mesh_leaf_ref(flat.mesh_first, flat.mesh_count)).astype(np.uint32)
     pad = _box_pad(flat.mesh_lower, flat.mesh_upper)
-    record = np.zeros((len(flat.mesh_right), K.MESH_NODE_FLOATS), np.float32)
-    record[:, 0:3] = flat.mesh_lower - pad
-    record[:, 4:7] = flat.mesh_upper + pad
-    record[:, 3] = flat.mesh_right.astype(np.uint32).view(np.float32)
-    # An inner node (count 0) keeps its split axis where a leaf keeps its first triangle.
-    first = np.where(flat.mesh_count > 0, flat.mesh_first, flat.mesh_axis)
-    record[:, 7] = K.mesh_tris(first, flat.mesh_count).astype(np.uint32).view(np.float32)
-    return record
+    lower, upper = flat.mesh_lower - pad, flat.mesh_upper + pad
+    parents = np.flatnonzero(inner)
+    left, right = parents + 1, flat.mesh_right[parents]
+    record = np.zeros((len(parents), K.MESH_NODE_FLOATS), np.float32)
+    record[:, 0:3], record[:, 4:7] = lower[left], upper[left]
+    record[:, 8:11], record[:, 12:15] = lower[right], upper[right]
+    record[:, 3] = ref[left].view(np.float32)
+    record[:, 7] = ref[right].view(np.float32)
+    if not len(record):                       # every mesh is a single leaf
+        record = np.zeros((1, K.MESH_NODE_FLOATS), np.float32)
+    return record, ref
 
 
 def _child_order(kind, left, right, lower, upper):

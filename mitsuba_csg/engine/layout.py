@@ -147,25 +147,32 @@ def record_plane_count(word):
 
 
 # ---- Mesh leaves: BVH node and triangle records ----
-# Node: 8 words, lower xyz + right child (uint32 bits; inner nodes, whose left child is the
-# next node), upper xyz + MESH_TRIS word: first triangle << MESH_COUNT_BITS | count for a
-# leaf, split axis << MESH_COUNT_BITS (count 0) for an inner node.
+# Node: one record per inner node of a mesh BVH, holding both children's boxes, so that one
+# visit tests both and descends only into those the ray reaches (16 words): left lower xyz +
+# left child ref, left upper xyz + right child ref, right lower xyz + pad, right upper xyz +
+# pad. A child ref is an inner node's record index, or MESH_LEAF_BIT | first triangle <<
+# MESH_COUNT_BITS | count for a leaf (first relative to the mesh's plane start).
 # Triangle: 12 floats, sorted vertices a, b, c (xyz + pad), parity in word 3.
-MESH_NODE_FLOATS = 8
+MESH_NODE_FLOATS = 16
 TRIANGLE_FLOATS = 12
 MESH_COUNT_BITS = 4
+MESH_LEAF_BIT = 1 << 31
 
 
-def mesh_tris(first, count):
-    return (first << MESH_COUNT_BITS) | count
+def mesh_leaf_ref(first, count):
+    return MESH_LEAF_BIT | (first << MESH_COUNT_BITS) | count
 
 
-def mesh_tris_first(word):
-    return word >> MESH_COUNT_BITS
+def mesh_ref_is_leaf(ref):
+    return (ref & MESH_LEAF_BIT) != 0
 
 
-def mesh_tris_count(word):
-    return word & ((1 << MESH_COUNT_BITS) - 1)
+def mesh_tris_first(ref):
+    return (ref & (MESH_LEAF_BIT - 1)) >> MESH_COUNT_BITS
+
+
+def mesh_tris_count(ref):
+    return ref & ((1 << MESH_COUNT_BITS) - 1)
 
 
 # ---- State tables (the automaton reads them; the upload puts them on the device) ----

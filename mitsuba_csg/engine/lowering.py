@@ -58,7 +58,6 @@ class FlatTree:
     mesh_lower: np.ndarray = None   # (K, 3) node boxes, canonical frame
     mesh_upper: np.ndarray = None
     mesh_right: np.ndarray = None   # (K,) inner node: absolute index of the right child (the left is next)
-    mesh_axis: np.ndarray = None    # (K,) inner node: split axis
     mesh_first: np.ndarray = None   # (K,) leaf: first triangle, relative to the mesh's plane start
     mesh_count: np.ndarray = None   # (K,) leaf: triangle count; 0: inner node
     root: int = 0
@@ -238,11 +237,10 @@ def _mesh_nodes(bvhs) -> dict:
     """All meshes' BVH nodes in one set of arrays (child indices made absolute)."""
     if not bvhs:
         empty = np.zeros(0, np.int64)
-        return dict(mesh_lower=np.zeros((0, 3)), mesh_upper=np.zeros((0, 3)), mesh_right=empty, mesh_axis=empty,
+        return dict(mesh_lower=np.zeros((0, 3)), mesh_upper=np.zeros((0, 3)), mesh_right=empty,
                     mesh_first=empty, mesh_count=empty)
     return dict(mesh_lower=np.vstack([b.lower for _, b in bvhs]), mesh_upper=np.vstack([b.upper for _, b in bvhs]),
                 mesh_right=np.concatenate([b.right + offset for offset, b in bvhs]),
-                mesh_axis=np.concatenate([b.axis for _, b in bvhs]),
                 mesh_first=np.concatenate([b.first for _, b in bvhs]),
                 mesh_count=np.concatenate([b.count for _, b in bvhs]))
 

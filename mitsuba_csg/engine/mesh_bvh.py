@@ -1,8 +1,9 @@
 """The BVH of a mesh leaf, built once in numpy, and its triangles as the kernel reads them.
 
 Nodes are stored in depth-first order (an inner node's left child is the next node) with the
-index of the right child and the split axis, so the kernel visits the child nearer along
-the ray first and keeps the other on a small per-lane stack: the nearest crossing found
+index of the right child; the upload (`engine.device`) turns them into one record per inner
+node holding both children's boxes, which the kernel tests together, visiting the nearer
+child first and keeping the other on a small per-lane stack: the nearest crossing found
 early culls the boxes behind it. Each triangle is stored with its vertices sorted by vertex
 index, so that the edge functions of an edge shared by two triangles are computed from the
 same operands in the same order, hence equal and opposite bit for bit (the watertight test, `engine.shapes`): a ray
@@ -20,11 +21,11 @@ STACK_SIZE = 32         # the kernel's per-lane stack: deeper than any BVH built
 class MeshBVH:
     """One mesh's BVH in depth-first order and its triangles in BVH order (float64)."""
 
-    __slots__ = ("lower", "upper", "right", "axis", "first", "count", "triangles", "planes")
+    __slots__ = ("lower", "upper", "right", "first", "count", "triangles", "planes")
 
-    def __init__(self, lower, upper, right, axis, first, count, triangles, planes):
+    def __init__(self, lower, upper, right, first, count, triangles, planes):
         self.lower, self.upper = lower, upper      # (K, 3) node boxes
-        self.right, self.axis = right, axis        # inner nodes: right child (the left is the next node), split axis
+        self.right = right                         # inner nodes: right child (the left is the next node)
         self.first, self.count = first, count      # leaf triangle range in BVH order; count 0: inner node
         self.triangles = triangles                 # (T, 12): sorted vertices a, b, c as xyz + pad, parity at 3
         self.planes = planes                       # (T, 4) outward unit normal and offset per triangle
@@ -35,7 +36,7 @@ class MeshBVH:
 
 
 def _sah_split(ids, centroid, t_lower, t_upper):
-    """(axis, ids in split order, left count) minimizing the surface area heuristic over the
+    """(ids in split order, left count) minimizing the surface area heuristic over the
     three axes' centroid orders (area(left) * n_left + area(right) * n_right)."""
     best = None
     n = len(ids)
@@ -48,8 +49,8 @@ def _sah_split(ids, centroid, t_lower, t_upper):
         cost = left[:-1] * k + right[1:] * (n - k)
         i = int(np.argmin(cost))
         if best is None or cost[i] < best[0]:
-            best = (cost[i], axis, order, i + 1)
-    return best[1], best[2], best[3]
+            best = (cost[i], order, i + 1)
+    return best[1], best[2]
 
 
 def _areas(lower, upper):
@@ -64,7 +65,7 @@ def build(vertices: np.ndarray, faces: np.ndarray) -> MeshBVH:
     centroid = tri.mean(axis=1)
     t_lower, t_upper = tri.min(axis=1), tri.max(axis=1)
     order = np.arange(len(faces))
-    lower, upper, right, split, first, count = [], [], [], [], [], []
+    lower, upper, right, first, count = [], [], [], [], []
 
     def emit(start: int, end: int, depth: int) -> None:
         index = len(right)
@@ -73,7 +74,6 @@ def build(vertices: np.ndarray, faces: np.ndarray) -> MeshBVH:
         upper.append(t_upper[ids].max(axis=0))
         right.append(0)
         if end - start <= LEAF_SIZE:
-            split.append(0)
             first.append(start)
             count.append(end - start)
         else:
@@ -81,13 +81,12 @@ def build(vertices: np.ndarray, faces: np.ndarray) -> MeshBVH:
                 raise ValueError("mesh BVH deeper than the kernel's stack")
             halvings = int(np.ceil(np.log2(max(1.0, (end - start) / LEAF_SIZE))))
             if depth + halvings + 1 < STACK_SIZE - 1:
-                axis, order[start:end], mid = _sah_split(ids, centroid, t_lower, t_upper)
+                order[start:end], mid = _sah_split(ids, centroid, t_lower, t_upper)
             else:                           # median splits always finish within the stack
                 c = centroid[ids]
                 axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
                 mid = (end - start) // 2
                 order[start:end] = ids[np.argpartition(c[:, axis], mid)]
-            split.append(axis)
             first.append(0)
             count.append(0)
             emit(start, start + mid, depth + 1)
@@ -108,7 +107,7 @@ def build(vertices: np.ndarray, faces: np.ndarray) -> MeshBVH:
     normal = np.cross(b - a, c - a)
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     planes = np.column_stack([normal, np.einsum("ij,ij->i", normal, a)])
-    return MeshBVH(np.array(lower), np.array(upper), np.array(right, np.int64), np.array(split, np.int64),
+    return MeshBVH(np.array(lower), np.array(upper), np.array(right, np.int64),
                    np.array(first, np.int64), np.array(count, np.int64), triangles, planes)
 
 

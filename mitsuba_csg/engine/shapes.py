@@ -227,6 +227,13 @@ def _pick(v, k):
     return dr.select(k == 0, v.x, dr.select(k == 1, v.y, v.z))
 
 
+def _box_entry(b, lower, upper, o, inv_d):
+    """(near, far) of the ray's parameter inside the box (lower.xyz, upper.xyz)."""
+    t1 = (b.Array3f(lower.x, lower.y, lower.z) - o) * inv_d
+    t2 = (b.Array3f(upper.x, upper.y, upper.z) - o) * inv_d
+    return dr.max(dr.minimum(t1, t2)), dr.min(dr.maximum(t1, t2))
+
+
 @dr.syntax
 def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
     """(t, face, class, plane normal) of a mesh's first crossing after t_start + skip."""
@@ -245,16 +252,22 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
     ox, oy, oz = _pick(o, kx), _pick(o, ky), _pick(o, kz)
     inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
 
-    node = b.UInt32(root)                          # next node to visit, or NO_NODE
-    stack = dr.alloc_local(b.UInt32, mesh_bvh.STACK_SIZE)    # far children still to visit
+    # The walk: `node` is an inner node whose children's boxes are still to be tested, [tri,
+    # tri_end) the triangles of the leaf being tested; refs of boxes the ray reaches, with
+    # their entry distances, wait on the stack (farther first), and one whose entry lies
+    # beyond the nearest crossing found since is dropped when popped.
+    root_leaf = K.mesh_ref_is_leaf(root)
+    node = dr.select(root_leaf, _NO_NODE, root)
+    tri = dr.select(root_leaf, K.mesh_tris_first(root), 0)
+    tri_end = dr.select(root_leaf, K.mesh_tris_first(root) + K.mesh_tris_count(root), 0)
+    stack_ref = dr.alloc_local(b.UInt32, mesh_bvh.STACK_SIZE)
+    stack_near = dr.alloc_local(b.Float, mesh_bvh.STACK_SIZE)
     sp = dr.zeros(b.UInt32, width)
-    tri = dr.zeros(b.UInt32, width)
-    tri_end = dr.zeros(b.UInt32, width)
     t = dr.full(b.Float, dr.inf, width)
     face = dr.zeros(b.UInt32, width)
     enter = dr.zeros(b.Bool, width)
-    while dr.hint((node != _NO_NODE) | (tri < tri_end), label="csg_mesh_bvh"):
-        # One triangle of the current leaf, or one node.
+    while dr.hint((node != _NO_NODE) | (tri < tri_end) | (sp > 0), label="csg_mesh_bvh"):
+        # One triangle of the current leaf, or one inner node's two children.
         testing = tri < tri_end
         if testing:
             row = (start + tri) * 3
@@ -288,34 +301,41 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
             t = dr.select(take, t_tri, t)
             face = dr.select(take, tri, face)
             enter = dr.select(take, det > 0, enter)
-        tri = dr.select(testing, tri + 1, tri)
+            tri += 1
 
-        # A node: on a box hit, a leaf's triangles come next; an inner node's child nearer
-        # along its split axis is visited first and the other pushed. Otherwise pop.
-        stepping = ~testing & (node != _NO_NODE)
-        if stepping:
-            lo = dr.gather(b.Array4f, nodes, node * 2, stepping)
-            hi = dr.gather(b.Array4f, nodes, node * 2 + 1, stepping)
-            t1 = (b.Array3f(lo.x, lo.y, lo.z) - o) * inv_d
-            t2 = (b.Array3f(hi.x, hi.y, hi.z) - o) * inv_d
-            near = dr.max(dr.minimum(t1, t2))
-            far = dr.min(dr.maximum(t1, t2))
-            hit = stepping & (near <= far) & (far > t_start) & (near <= t)
-            word = dr.reinterpret_array(b.UInt32, hi.w)
-            count = K.mesh_tris_count(word)
-            leaf = hit & (count > 0)
-            inner = hit & (count == 0)
-            tri = dr.select(leaf, K.mesh_tris_first(word), tri)
-            tri_end = dr.select(leaf, K.mesh_tris_first(word) + count, tri_end)
-            right = dr.reinterpret_array(b.UInt32, lo.w)
-            right_first = _pick(d, K.mesh_tris_first(word)) < 0
-            stack.write(dr.select(right_first, node + 1, right), sp, inner)
-            sp = dr.select(inner, sp + 1, sp)
-            pop = stepping & ~inner & (sp > 0)
-            popped = stack.read(dr.select(pop, sp - 1, 0), pop)    # an index in range on every lane
-            sp = dr.select(pop, sp - 1, sp)
-            node = dr.select(inner, dr.select(right_first, right, node + 1),
-                             dr.select(pop, popped, dr.select(stepping, _NO_NODE, node)))
+        # An inner node: test both children's boxes against [t_start, t]; go on with the
+        # nearer one the ray reaches and push the other if it reaches both.
+        expanding = ~testing & (node != _NO_NODE)
+        next_ref = dr.full(b.UInt32, _NO_NODE, width)
+        if expanding:
+            row = node * 4
+            lower_l, upper_l = dr.gather(b.Array4f, nodes, row, expanding), dr.gather(b.Array4f, nodes, row + 1, expanding)
+            near_l, far_l = _box_entry(b, lower_l, upper_l, o, inv_d)
+            near_r, far_r = _box_entry(b, dr.gather(b.Array4f, nodes, row + 2, expanding),
+                                       dr.gather(b.Array4f, nodes, row + 3, expanding), o, inv_d)
+            hit_l = (near_l <= far_l) & (far_l > t_start) & (near_l <= t)
+            hit_r = (near_r <= far_r) & (far_r > t_start) & (near_r <= t)
+            ref_l = dr.reinterpret_array(b.UInt32, lower_l.w)
+            ref_r = dr.reinterpret_array(b.UInt32, upper_l.w)
+            right_first = hit_r & (~hit_l | (near_r < near_l))
+            both = expanding & hit_l & hit_r
+            stack_ref.write(dr.select(right_first, ref_l, ref_r), sp, both)
+            stack_near.write(dr.select(right_first, near_l, near_r), sp, both)
+            sp = dr.select(both, sp + 1, sp)
+            next_ref = dr.select(hit_l | hit_r, dr.select(right_first, ref_r, ref_l), _NO_NODE)
+            node = dr.full(b.UInt32, _NO_NODE, width)
+
+        # Idle after this step: pop the nearest waiting box, unless it lies beyond t.
+        pop = (next_ref == _NO_NODE) & (node == _NO_NODE) & (tri >= tri_end) & (sp > 0)
+        top = dr.select(pop, sp - 1, 0)                 # an index in range on every lane
+        popped_ref, popped_near = stack_ref.read(top, pop), stack_near.read(top, pop)
+        sp = dr.select(pop, sp - 1, sp)
+        next_ref = dr.select(pop & (popped_near <= t), popped_ref, next_ref)
+        # Take the next ref: a leaf's triangles are tested next, an inner node is expanded.
+        leaf = (next_ref != _NO_NODE) & K.mesh_ref_is_leaf(next_ref)
+        tri = dr.select(leaf, K.mesh_tris_first(next_ref), tri)
+        tri_end = dr.select(leaf, K.mesh_tris_first(next_ref) + K.mesh_tris_count(next_ref), tri_end)
+        node = dr.select(leaf, _NO_NODE, dr.select(next_ref != _NO_NODE, next_ref, node))
     found = dr.isfinite(t)
     plane = dr.gather(b.Array4f, plane_buf, start + face, found)
     cls = dr.select(found, dr.select(enter, b.UInt32(ENTER), b.UInt32(EXIT)), b.UInt32(MISS))
