@@ -43,7 +43,9 @@ def rays_for(model, width, height):
     return look_at_rays(origin, target, fov_degrees=40.0, width=width, height=height)
 
 
-def measure(prepared, o, d, repeats):
+def measure(prepared, o, d, repeats, frozen=False):
+    """Best seconds of a primary-ray frame (hits, normals, steps) and its statistics;
+    `frozen` replays the recorded kernels (trace_rays(frozen=True)) instead of tracing them."""
     import drjit as dr
 
     from mitsuba_csg.queries import rays_to_device, trace_rays
@@ -53,7 +55,7 @@ def measure(prepared, o, d, repeats):
     out = {}
 
     def run():
-        h = trace_rays(prepared, O, D)
+        h = trace_rays(prepared, O, D, frozen=frozen)
         dr.eval(h.t, h.normal, h.prim, h.steps, h.finished)
         dr.sync_thread()
         out["h"] = h

@@ -152,7 +152,8 @@ def record_plane_count(word):
 # left child ref, left upper xyz + right child ref, right lower xyz + pad, right upper xyz +
 # pad. A child ref is an inner node's record index, or MESH_LEAF_BIT | first triangle <<
 # MESH_COUNT_BITS | count for a leaf (first relative to the mesh's plane start).
-# Triangle: 12 floats, sorted vertices a, b, c (xyz + pad), parity in word 3.
+# Triangle: 12 floats, sorted vertices a, b, c (xyz + pad), parity in word 3, twice the
+# triangle's area in word 7.
 MESH_NODE_FLOATS = 16
 TRIANGLE_FLOATS = 12
 MESH_COUNT_BITS = 4

@@ -27,7 +27,7 @@ class MeshBVH:
         self.lower, self.upper = lower, upper      # (K, 3) node boxes
         self.right = right                         # inner nodes: right child (the left is the next node)
         self.first, self.count = first, count      # leaf triangle range in BVH order; count 0: inner node
-        self.triangles = triangles                 # (T, 12): sorted vertices a, b, c as xyz + pad, parity at 3
+        self.triangles = triangles                 # (T, 12): sorted vertices a, b, c as xyz + pad; parity at 3, twice the area at 7
         self.planes = planes                       # (T, 4) outward unit normal and offset per triangle
 
     @property
@@ -105,6 +105,7 @@ def build(vertices: np.ndarray, faces: np.ndarray) -> MeshBVH:
     triangles[:, 3] = parity
     a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
     normal = np.cross(b - a, c - a)
+    triangles[:, 7] = np.linalg.norm(normal, axis=1)     # twice the area: the kernel's slope
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     planes = np.column_stack([normal, np.einsum("ij,ij->i", normal, a)])
     return MeshBVH(np.array(lower), np.array(upper), np.array(right, np.int64),

@@ -250,6 +250,7 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
     dz = _pick(d, kz)
     sx, sy, sz = _pick(d, kx) / dz, _pick(d, ky) / dz, 1.0 / dz
     ox, oy, oz = _pick(o, kx), _pick(o, ky), _pick(o, kz)
+    slope_scale = dr.norm(d) * dr.abs(sz)
     inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
 
     # The walk: `node` is an inner node whose children's boxes are still to be tested, [tri,
@@ -292,11 +293,10 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
             inside = ((u >= 0) & (v >= 0) & (w >= 0)) | ((u <= 0) & (v <= 0) & (w <= 0))
             det = u + v + w
             t_tri = (u * az + v * bz + w * cz) * sz / det
-            # Neighbouring triangles' t for the same edge point differ like 1 / |cos|.
-            e1, e2 = b.Array3f(vb.x - va.x, vb.y - va.y, vb.z - va.z), b.Array3f(vc.x - va.x, vc.y - va.y, vc.z - va.z)
-            n = dr.cross(e1, e2)
-            cos = dr.abs(dr.dot(n, d)) * dr.rsqrt(dr.squared_norm(n) * dr.squared_norm(d))
-            t_min = t_start + skip * dr.minimum(dr.rcp(cos), 2.0**MAX_SLOPE)
+            # Neighbouring triangles' t for the same edge point differ like 1 / |cos|; the
+            # sheared determinant is n . d / d_z for the triangle's normal n (|n| = twice its
+            # area, word 7), so 1 / |cos| = |n| |d| / (|det| |d_z|).
+            t_min = t_start + skip * dr.minimum(vb.w * slope_scale / dr.abs(det), 2.0**MAX_SLOPE)
             take = testing & inside & (det != 0) & (t_tri > t_min) & (t_tri < t)
             t = dr.select(take, t_tri, t)
             face = dr.select(take, tri, face)
