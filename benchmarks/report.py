@@ -128,13 +128,17 @@ def main():
                 "Mitsuba scene build (Embree BVH), Embree primary rays at 1280x720, against optimize + CSG primary rays.",
                 "The last columns render one 1-spp frame of the command line's model scene (floor, sky, sun, "
                 "max_depth 6) both ways: `csg_path` on the CSG shape, Mitsuba's `path` with the mesh in its place.",
+                "'frozen' replays the recorded kernels (`trace_rays(frozen=True)`, as a render loop of fixed "
+                "size can) instead of tracing them in Python per frame.",
                 "", "| scene | prims | mesh triangles | booleans s | scene build s | Embree s/frame | optimize s | "
-                "CSG s/frame | CSG / Embree per frame | first frame: mesh s / CSG s | path s | csg_path s | "
-                "csg_path / path |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                "CSG s/frame | CSG / Embree per frame | frozen CSG s / Embree | first frame: mesh s / CSG s | path s | "
+                "csg_path s | csg_path / path |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in mesh["rows"]:
             out.append(f"| {r['scene']} | {r['primitives']} | {r['triangles']} | {r['boolean_s']:.2f} | "
                        f"{r['scene_build_s']:.2f} | {r['embree_s']:.3f} | {r['csg_prepare_s']:.2f} | "
-                       f"{r['csg_trace_s']:.3f} | {r['trace_ratio']:.1f} | {r['mesh_first_frame_s']:.2f} / "
+                       f"{r['csg_trace_s']:.3f} | {r['trace_ratio']:.1f} | "
+                       f"{fmt(r.get('csg_frozen_s'), '.3f')} / {fmt(r.get('frozen_ratio'), '.1f')} | "
+                       f"{r['mesh_first_frame_s']:.2f} / "
                        f"{r['csg_first_frame_s']:.2f} | {fmt(r.get('mesh_path_s'), '.2f')} | "
                        f"{fmt(r.get('csg_path_s'), '.2f')} | {fmt(r.get('path_ratio'), '.1f')} |")
         out.append("")
@@ -163,12 +167,14 @@ def main():
         out += ["## Mesh leaves", "",
                 f"`./run.sh bench mesh_leaves.py` ({m['date']}, `{m['variant']}`, 1280x720 primary rays): a lone "
                 "mesh leaf (a warped sphere, non-convex) against Embree on the same triangles, and the Cheese with "
-                "its spheres replaced by sphere meshes against the analytic Cheese, in one run.", "",
-                "| scene | CSG s/frame | Embree s/frame | CSG / Embree | vs sphere holes | steps/ray |",
-                "|---|---|---|---|---|---|"]
+                "its spheres replaced by sphere meshes against the analytic Cheese, in one run; 'frozen' as above.",
+                "", "| scene | CSG s/frame | Embree s/frame | CSG / Embree | frozen s/frame | frozen / Embree | "
+                "vs sphere holes | steps/ray |", "|---|---|---|---|---|---|---|---|"]
         for r in leaves["rows"]:
             out.append(f"| {r['scene']} | {r['csg_s']:.3f} | {fmt(r.get('embree_s'), '.3f')} | "
-                       f"{fmt(r.get('ratio'), '.1f')} | {fmt(r.get('vs_analytic'), '.2f')} | {r['mean_steps']:.1f} |")
+                       f"{fmt(r.get('ratio'), '.1f')} | {fmt(r.get('csg_frozen_s'), '.3f')} | "
+                       f"{fmt(r.get('frozen_ratio'), '.1f')} | {fmt(r.get('vs_analytic'), '.2f')} | "
+                       f"{r['mean_steps']:.1f} |")
         out.append("")
     if (common.ROOT / "docs" / "images" / "scaling.png").exists():
         out += ["## Scaling", "", "`./run.sh bench scaling.py`: optimized trace time against primitive count "
