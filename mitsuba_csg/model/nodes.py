@@ -17,6 +17,10 @@ from . import transform as tf
 UNION, INTERSECTION, DIFFERENCE = "union", "intersection", "difference"
 OPERATIONS = (UNION, INTERSECTION, DIFFERENCE)
 
+# Primitives in one model once shared subtrees are expanded (each use of a shared subtree is
+# a copy for the kernel): 10^7 leaves need several GB to lower and optimize (docs/limits.md).
+MAX_LEAVES = 10_000_000
+
 
 class Node:
     """Common base of primitives and operations: transforms, operators, queries."""
@@ -92,16 +96,25 @@ class Node:
         flat = lower(self)
         return flat.node_lower[flat.root].copy(), flat.node_upper[flat.root].copy()
 
+    @property
+    def leaf_count(self) -> int:
+        """Number of primitives in `leaves()` (shared subtrees counted once per use)."""
+        return 1
+
     def tree_height(self) -> int:
         """Number of operation levels on the longest root-to-leaf path of the input tree."""
-        best, stack = 0, [(self, 0)]
+        heights: dict[int, int] = {}       # per shared operation node, so a DAG costs its size
+        stack = [(self, False)]
         while stack:
-            node, depth = stack.pop()
-            if isinstance(node, Operation):
-                stack.extend((c, depth + 1) for c in node.children)
+            node, children_done = stack.pop()
+            if not isinstance(node, Operation) or id(node) in heights:
+                continue
+            if children_done:
+                heights[id(node)] = 1 + max(heights.get(id(c), 0) for c in node.children)
             else:
-                best = max(best, depth)
-        return best
+                stack.append((node, True))
+                stack.extend((c, False) for c in node.children)
+        return heights.get(id(self), 0)
 
     def _transform_repr(self) -> str:
         if self.matrix is tf.IDENTITY:
@@ -122,7 +135,7 @@ class Operation(Node):
     step flattens chains of one associative operation, so `a | b | c | ...` costs no depth.
     """
 
-    __slots__ = ("kind", "children")
+    __slots__ = ("kind", "children", "_leaf_count")
 
     def __init__(self, kind: str, children, matrix: np.ndarray = tf.IDENTITY, material: str | None = None):
         super().__init__(matrix, material)
@@ -134,8 +147,19 @@ class Operation(Node):
         for i, c in enumerate(children):
             if not isinstance(c, Node):
                 raise ModelError(f"{kind}: operand {i} is a {type(c).__name__}, not a CSG node")
+        # Counted as the tree is built, so a small description of a huge tree (a subtree
+        # used twice at every level) is refused before anything walks it.
+        count = sum(c.leaf_count for c in children)
+        if count > MAX_LEAVES:
+            raise ModelError(f"{kind}: the model expands to {count:.3g} primitives (shared subtrees are copied "
+                             f"for each use), more than the limit of {MAX_LEAVES:.0e}")
         self.kind = kind
         self.children = children
+        self._leaf_count = count
+
+    @property
+    def leaf_count(self) -> int:
+        return self._leaf_count
 
     def __repr__(self) -> str:
         inner = ", ".join(repr(c) for c in self.children[:4])

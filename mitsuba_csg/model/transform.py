@@ -6,6 +6,8 @@ primitive.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..errors import ModelError
@@ -85,9 +87,9 @@ def affine(matrix) -> np.ndarray:
         m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
     if m.shape != (4, 4):
         raise ModelError(f"transform: expected a 4x4 or 3x4 matrix, got shape {m.shape}")
-    if not np.all(np.isfinite(m)):
+    if not np.isfinite(m).all():
         raise ModelError("transform: the matrix has NaN or infinite entries")
-    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
+    if np.abs(m[3] - _AFFINE_ROW).max() > 1e-8 + 1e-5:     # np.allclose's tolerances, without its cost
         raise ModelError(f"transform: the last row must be (0, 0, 0, 1) (affine), got {m[3].tolist()}")
     check_invertible(m, "transform")
     m = m.copy()
@@ -95,9 +97,19 @@ def affine(matrix) -> np.ndarray:
     return _frozen(m)
 
 
+_AFFINE_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
 def check_invertible(m: np.ndarray, what: str) -> None:
     """Refuse a linear part that is singular relative to its own scale."""
     lin = m[:3, :3]
+    # sigma_min / sigma_max >= |det| / |M|_F^3: most matrices pass this cheap bound (a
+    # placement walk validates one per placed volume); the rest get their singular values.
+    (a, b, c), (d, e, f), (g, h, i) = lin.tolist()
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    frobenius = math.sqrt(a * a + b * b + c * c + d * d + e * e + f * f + g * g + h * h + i * i)
+    if math.isfinite(det) and 0.0 < frobenius < 1e100 and abs(det) > 1e-12 * frobenius ** 3:
+        return
     sv = np.linalg.svd(lin, compute_uv=False)
     if not np.all(np.isfinite(sv)) or sv[-1] <= sv[0] * 1e-12:
         raise ModelError(f"{what}: singular transform (singular values {sv.tolist()})")

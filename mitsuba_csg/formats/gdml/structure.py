@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ...model import transform as tf
-from ...model.nodes import Node, Operation
+from ...model.nodes import MAX_LEAVES, Node, Operation
 from ..reading import FormatError
 from .defines import affine, placement, rotation_matrix
 from .replicas import division_copies, parameterised_copies, replica_copies
@@ -64,8 +64,13 @@ def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> l
     if show_world is None:
         # A file of one volume (a phantom's organ, a test box) is that volume.
         show_world = not any(child.tag in _PLACING for child in doc.volumes[world])
+    _check_expanded_size(doc, solids, world, world_el, depth, show_world)
     placed: list[PlacedVolume] = []
     count = 0
+    # A volume placed many times is read once: its solid, and the copies each of its
+    # placements makes (keyed by element).
+    solid_of: dict[int, Node | None] = {}
+    copies_of: dict[int, list] = {}
     # (element, world matrix, depth, ancestors, the copy's own solid or None); assemblies are
     # expanded at the placing level
     stack = [(doc.volumes[world], tf.IDENTITY, 0, (world,), None)]
@@ -73,7 +78,12 @@ def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> l
         vol, matrix, level, ancestors, own_solid = stack.pop()
         is_assembly = vol.tag == "assembly"
         if not is_assembly and (level > 0 or show_world):
-            node = _volume_solid(doc, solids, vol, own_solid)
+            if own_solid is None:
+                if id(vol) not in solid_of:
+                    solid_of[id(vol)] = _volume_solid(doc, solids, vol)
+                node = solid_of[id(vol)]
+            else:
+                node = _volume_solid(doc, solids, vol, own_solid)
             if node is not None:
                 placed.append(PlacedVolume(node if matrix is tf.IDENTITY else node.transform(matrix), level,
                                            _strip_pointer(vol.get("name", "")), _colour(doc, vol)))
@@ -97,7 +107,9 @@ def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> l
                 doc.fail(pv, f"volume placement cycle: {' -> '.join(ancestors[ancestors.index(ref):] + (ref,))}")
             if len(ancestors) > MAX_VOLUME_DEPTH:
                 doc.fail(pv, f"placements nested more than {MAX_VOLUME_DEPTH} deep")
-            copies = _copies(doc, solids, vol, pv)
+            copies = copies_of.get(id(pv))
+            if copies is None:
+                copies = copies_of[id(pv)] = _copies(doc, solids, vol, pv)
             count += len(copies)
             if count > MAX_PLACEMENTS:
                 doc.fail(pv, f"more than {MAX_PLACEMENTS} placed volumes")
@@ -108,6 +120,58 @@ def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> l
         raise FormatError(f"{doc.source}: nothing to show: no placed volume "
                           f"{'at all' if show_world else 'below the world (show_world=True shows the world)'}")
     return placed
+
+
+def _check_expanded_size(doc, solids, world, world_el, depth, show_world) -> None:
+    """Refuse, before expanding anything, a hierarchy whose placed volumes or primitives would
+    exceed the limits: a volume placed twice per level doubles them at every level, so a file
+    of a few kilobytes can describe 2^40 copies. Counts are kept per (volume, level), so the
+    cost is that of the distinct volumes, not of their copies."""
+    counts: dict[tuple[str, int], tuple[int, int]] = {}   # (placements, primitives) below a placed volume
+    open_keys: set[tuple[str, int]] = set()                # on the current path: seen again, a cycle
+    stack = [(world, 0, False)]
+    while stack:
+        name, level, children_done = stack.pop()
+        # Without a depth limit only the world's own level differs from the others.
+        key = (name, level if depth is not None else min(level, 1))
+        if key in counts:
+            continue
+        vol = doc.volumes.get(name, doc.assemblies.get(name))
+        is_assembly = vol.tag == "assembly"
+        child_level = level if is_assembly else level + 1
+        placements = []
+        if depth is None or child_level <= depth:
+            for pv in vol:
+                if pv.tag in _PLACING and pv.find("file") is None:
+                    ref = pv.find("volumeref")
+                    ref = ref.get("ref") if ref is not None else None
+                    if ref in doc.volumes or (pv.tag == "physvol" and ref in doc.assemblies):
+                        placements.append((pv, ref))
+        if not children_done:
+            if key in open_keys:
+                return                               # a placement cycle: the walk names it
+            open_keys.add(key)
+            stack.append((name, level, True))
+            stack.extend((ref, child_level, False) for _, ref in placements)
+            continue
+        open_keys.discard(key)
+        own = 0
+        if not is_assembly and (level > 0 or show_world):
+            node = _volume_solid(doc, solids, vol)
+            own = node.leaf_count if node is not None else 0
+        n_placed, n_leaves = 0, own
+        for pv, ref in placements:
+            copies = len(_copies(doc, solids, vol, pv))
+            below = counts[(ref, child_level if depth is not None else 1)]
+            n_placed += copies * (1 + below[0])
+            n_leaves += copies * below[1]
+            if n_placed > MAX_PLACEMENTS:
+                doc.fail(pv, f"the hierarchy places {n_placed:.3g} volumes or more (copies of copies), more "
+                             f"than the limit of {MAX_PLACEMENTS}")
+            if n_leaves > MAX_LEAVES:
+                doc.fail(pv, f"the placed volumes hold {n_leaves:.3g} primitives or more (copies of copies), "
+                             f"more than the limit of {MAX_LEAVES:.0e}")
+        counts[key] = (n_placed, n_leaves)
 
 
 def _copies(doc, solids, vol, pv) -> list[tuple[np.ndarray, Node | None]]:

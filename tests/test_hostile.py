@@ -1,0 +1,115 @@
+"""Hostile and extreme inputs (small files that describe huge models, pathological sizes):
+each ends in the package's error naming the place, within a time and memory budget, in a
+subprocess so that a regression cannot take the test run down with it."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_isolated(code: str, timeout: float = 120.0) -> tuple[str, float, float]:
+    """(output, seconds, peak resident MB) of `code` run by a fresh Python."""
+    code = textwrap.dedent(code) + (
+        "\nimport resource\nprint('peak_mb', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)\n")
+    start = time.perf_counter()
+    try:
+        proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                              timeout=timeout)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"did not finish within {timeout} s")
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out
+    return out, time.perf_counter() - start, float(out.rsplit("peak_mb", 1)[1].split()[0])
+
+
+def _gdml(solids: str, structure: str) -> str:
+    return (f'<?xml version="1.0"?>\n<gdml>\n<solids>\n<box name="b" x="1" y="1" z="1"/>\n{solids}\n</solids>\n'
+            f'<structure>\n{structure}\n</structure>\n'
+            '<setup name="Default" version="1.0"><world ref="World"/></setup>\n</gdml>\n')
+
+
+def doubling_booleans(levels: int) -> str:
+    """s_i = s_(i-1) | s_(i-1): 2^levels boxes from a few kilobytes."""
+    solids = "\n".join(f'<union name="s{i}"><first ref="s{i - 1}"/><second ref="s{i - 1}"/>'
+                       f'<position name="p{i}" x="0.1"/></union>' for i in range(1, levels + 1))
+    structure = (f'<volume name="V"><materialref ref="G4_AIR"/><solidref ref="s{levels}"/></volume>\n'
+                 '<volume name="World"><materialref ref="G4_AIR"/><solidref ref="w"/>'
+                 '<physvol><volumeref ref="V"/></physvol></volume>')
+    return _gdml('<box name="s0" x="1" y="1" z="1"/>\n<box name="w" x="100" y="100" z="100"/>\n' + solids, structure)
+
+
+def doubling_placements(levels: int) -> str:
+    """Volume L_i places L_(i-1) twice: 2^levels placed volumes."""
+    volumes = ['<volume name="L0"><materialref ref="G4_AIR"/><solidref ref="b"/></volume>']
+    volumes += [f'<volume name="L{i}"><materialref ref="G4_AIR"/><solidref ref="b"/>'
+                f'<physvol><volumeref ref="L{i - 1}"/></physvol>'
+                f'<physvol><volumeref ref="L{i - 1}"/><position name="q{i}" x="0.01"/></physvol></volume>'
+                for i in range(1, levels + 1)]
+    volumes.append(f'<volume name="World"><materialref ref="G4_AIR"/><solidref ref="b"/>'
+                   f'<physvol><volumeref ref="L{levels}"/></physvol></volume>')
+    return _gdml("", "\n".join(volumes))
+
+
+def test_shared_subtrees_that_double_are_refused_as_they_are_built():
+    """A subtree used twice at each of 40 levels is 2^40 primitives for the kernel: the
+    operation that passes the limit refuses, at once, instead of anything walking it."""
+    out, seconds, peak = run_isolated("""
+        import mitsuba_csg as csg
+        a = csg.Sphere(1.0)
+        try:
+            for i in range(40):
+                a = a | a.translate((0.1, 0, 0))
+        except csg.ModelError as e:
+            print("refused at", i, ":", e)
+        b = csg.Sphere(1.0)
+        for i in range(20):
+            b = b - b.rotate('z', 10)
+        print("height", b.tree_height(), "leaves", b.leaf_count)
+    """)
+    assert "refused at 23 : union: the model expands to 1.68e+07 primitives" in out, out
+    assert "more than the limit of 1e+07" in out
+    assert "height 20 leaves 1048576" in out, out
+    assert seconds < 30 and peak < 2000, (seconds, peak)
+
+
+@pytest.mark.parametrize("maker, levels, pattern", [
+    (doubling_booleans, 40, r'line \d+: <union name="s24">: union: the model expands to 1.68e\+07 primitives'),
+    (doubling_placements, 40, r"line \d+: <physvol>: the hierarchy places 2.1e\+06 volumes or more"),
+])
+def test_gdml_that_describes_a_huge_model_is_refused_early(tmp_path, maker, levels, pattern):
+    import re
+    path = tmp_path / "huge.gdml"
+    path.write_text(maker(levels))
+    out, seconds, peak = run_isolated(f"""
+        import time
+        import mitsuba_csg as csg
+        t0 = time.perf_counter()
+        try:
+            csg.load({str(path)!r})
+            print("loaded")
+        except csg.CSGError as e:
+            print(type(e).__name__, e)
+        print("load seconds", time.perf_counter() - t0)
+    """)
+    assert re.search("FormatError huge.gdml: " + pattern, out), out
+    load_seconds = float(out.rsplit("load seconds", 1)[1].split()[0])
+    assert load_seconds < 2.0 and peak < 2000, (load_seconds, peak)
+
+
+def test_many_placements_within_the_limit_load_in_seconds(tmp_path):
+    """2^18 doubled placements (524287 volumes) are within the limit: the walk reads each
+    volume's solid and each placement's copies once, and validates transforms cheaply."""
+    import mitsuba_csg as csg
+    path = tmp_path / "many.gdml"
+    path.write_text(doubling_placements(18))
+    t0 = time.perf_counter()
+    model = csg.load(str(path))
+    assert model.leaf_count == 2**19 - 1
+    assert time.perf_counter() - t0 < 60
