@@ -3,6 +3,7 @@ each ends in the package's error naming the place, within a time and memory budg
 subprocess so that a regression cannot take the test run down with it."""
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import textwrap
@@ -113,3 +114,67 @@ def test_many_placements_within_the_limit_load_in_seconds(tmp_path):
     model = csg.load(str(path))
     assert model.leaf_count == 2**19 - 1
     assert time.perf_counter() - t0 < 60
+
+
+def polyhedra_file(sides: int, zplanes) -> str:
+    z = "".join(f'<zplane z="{zz}" rmin="0" rmax="{r}"/>' for zz, r in zplanes)
+    solids = (f'<polyhedra name="p" startphi="0" deltaphi="360" numsides="{sides}" aunit="deg" lunit="mm">{z}'
+              '</polyhedra>\n<box name="w" x="1000" y="1000" z="1000"/>')
+    structure = ('<volume name="V"><materialref ref="G4_AIR"/><solidref ref="p"/></volume>\n'
+                 '<volume name="World"><materialref ref="G4_AIR"/><solidref ref="w"/>'
+                 '<physvol><volumeref ref="V"/></physvol></volume>')
+    return _gdml(solids, structure)
+
+
+@pytest.mark.parametrize("sides, zplanes", [
+    (254, [(-10, 10), (10, 5)]),                                    # a tapered section: 256 planes
+    (200, [(-100 + 10 * i, 20 + i % 3) for i in range(20)]),        # 19 sections of 202 planes
+    (10_000, [(-10, 10), (10, 5)]),                                  # GDML's documented maximum
+])
+def test_polyhedra_with_many_sides_load_and_trace_fast(tmp_path, sides, zplanes):
+    """The vertex check of a convex polyhedron used every plane triple against every plane
+    (254 sides: 6.5 GB); a half-space intersection needs memory linear in the planes. The
+    ray along -x at z = 0 meets the ring of sides at a corner (G4Polyhedra puts one on
+    phi = 180 degrees for an even count), at the corner radius r / cos(pi / sides)."""
+    path = tmp_path / "poly.gdml"
+    path.write_text(polyhedra_file(sides, zplanes))
+    out, seconds, peak = run_isolated(f"""
+        import math, time
+        import numpy as np
+        import mitsuba_csg as csg
+        t0 = time.perf_counter()
+        model = csg.load({str(path)!r})
+        t = csg.trace(model, np.array([[-500.0, 0, 0]]), np.array([[1.0, 0, 0]])).t[0]
+        print("seconds", time.perf_counter() - t0, "t", t)
+    """)
+    (z0, r0), (z1, r1) = [(z, r) for z, r in zplanes if z <= 0][-1], [(z, r) for z, r in zplanes if z > 0][0]
+    apothem = r0 + (r1 - r0) * (0 - z0) / (z1 - z0)
+    corner = apothem / math.cos(math.pi / sides)
+    t = float(out.split(" t ", 1)[1].split()[0])
+    assert abs(t - (500.0 - corner)) < 1e-4 * 500, (t, 500.0 - corner)
+    assert float(out.split("seconds", 1)[1].split()[0]) < 10 and peak < 1500, (out, peak)
+
+
+def test_convex_polyhedron_planes_are_checked_in_linear_memory():
+    """The documented limits agree with the code: 4..16384 planes of a ConvexPolyhedron,
+    prisms of up to 1000 sides; unbounded, empty and flat sets are refused by name."""
+    import numpy as np
+
+    import mitsuba_csg as csg
+    from mitsuba_csg.model.polyhedra import MAX_PLANES
+    angles = 2 * np.pi * np.arange(MAX_PLANES - 2) / (MAX_PLANES - 2)
+    ring = np.column_stack([np.cos(angles), np.sin(angles), np.full_like(angles, 0.2), np.ones_like(angles)])
+    caps = [[0, 0, 1, 1], [0, 0, -1, 1]]
+    t0 = time.perf_counter()
+    solid = csg.ConvexPolyhedron(np.vstack([ring, caps]))
+    assert time.perf_counter() - t0 < 5
+    assert len(solid.vertices) == 2 * (MAX_PLANES - 2)
+    with pytest.raises(csg.ModelError, match=f"needs 4..{MAX_PLANES} planes, got {MAX_PLANES + 1}"):
+        csg.ConvexPolyhedron(np.vstack([ring, caps, [[1, 0, 0, 5]]]))
+    assert len(csg.Prism(1000, 1.0, 1.0).vertices) == 2000
+    slab_ring = [[1, 0, 0, 1], [-1, 0, 0, 1], [0, 1, 0, 1], [0, -1, 0, 1]]
+    for planes, message in ((slab_ring, "extends to infinity"),
+                            (slab_ring + [[0, 0, 1, 1], [0, 0, -1, -2]], "enclose no solid"),
+                            (slab_ring + [[0, 0, 1, 0], [0, 0, -1, 0]], "enclose no solid")):
+        with pytest.raises(csg.ModelError, match=message):
+            csg.ConvexPolyhedron(planes)

@@ -302,7 +302,7 @@ def in_union(node) -> dict:
     ({"type": "prism", "sides": 2, "apothem": 1, "height": 1}, r"root\.children\[1\]\.sides: expected an integer"),
     ({"type": "prism", "sides": False, "apothem": 1, "height": 1}, r"\.sides: expected an integer .* got false"),
     ({"type": "convex_polyhedron", "planes": [[1, 0, 0, 1]] * 3},
-     r"root\.children\[1\]\.planes: a closed convex solid needs 4\.\.256 planes, got 3"),
+     r"root\.children\[1\]\.planes: a closed convex solid needs 4\.\.16384 planes, got 3"),
     ({"type": "convex_polyhedron", "planes": [[1, 0, 0, 1]] * 3 + [[1, 0, 1]]},
      r"root\.children\[1\]\.planes\[3\]: expected 4 numbers, got 3"),
     ({"type": "convex_polyhedron", "planes": [[1, 0, 0, 1]] * 3 + [[0, 0, 0, 1]]},

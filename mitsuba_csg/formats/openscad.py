@@ -65,7 +65,7 @@ from ..errors import ModelError
 from ..model import transform as tf
 from ..model.nodes import DIFFERENCE, INTERSECTION, UNION, Node, Operation
 from ..model.mesh import Mesh, MeshOrientationWarning
-from ..model.polyhedra import convex_planes
+from ..model.polyhedra import CONVEX_LEAF_PLANES, convex_planes
 from ..model.primitives import Box, Cone, ConvexPolyhedron, Sphere
 from . import openscad_2d as flat
 from .reading import FormatError, read_model_bytes
@@ -1068,7 +1068,7 @@ class _Evaluator:
                 return self.malformed(faces[1], f"face {k} has fewer than 3 distinct points")
             index_faces.append(idx)
         planes, problem = convex_planes(np.array(pts, dtype=np.float64), index_faces)
-        if not problem and len(planes) <= ConvexPolyhedron.MAX_PLANES:
+        if not problem and len(planes) <= CONVEX_LEAF_PLANES:
             return ConvexPolyhedron(planes)
         # Any other closed polyhedron is a mesh leaf. OpenSCAD lists a face's points clockwise
         # seen from outside: reversed, they are the counter-clockwise triangles a Mesh takes.

@@ -167,10 +167,10 @@ def cube_points(size, center: bool) -> np.ndarray:
 
 
 def convex_solid(points: np.ndarray):
-    """The convex hull of points as a ConvexPolyhedron (a Mesh beyond its plane limit)."""
+    """The convex hull of points as a ConvexPolyhedron (a Mesh beyond CONVEX_LEAF_PLANES faces)."""
     import manifold3d as m3
 
-    from ..model.polyhedra import convex_planes
+    from ..model.polyhedra import CONVEX_LEAF_PLANES, convex_planes
     from ..model.primitives import ConvexPolyhedron
     hull = m3.Manifold.hull_points(np.ascontiguousarray(points, dtype=np.float64))
     if hull.is_empty() or hull.volume() <= 0:
@@ -179,7 +179,7 @@ def convex_solid(points: np.ndarray):
     verts = np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3]
     tris = np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3)
     planes, problem = convex_planes(verts, [list(t[::-1]) for t in tris])
-    if problem is None and len(planes) <= ConvexPolyhedron.MAX_PLANES:
+    if problem is None and len(planes) <= CONVEX_LEAF_PLANES:
         return ConvexPolyhedron(planes)
     return Mesh.from_manifold(hull)
 
