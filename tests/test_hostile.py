@@ -178,3 +178,26 @@ def test_convex_polyhedron_planes_are_checked_in_linear_memory():
                             (slab_ring + [[0, 0, 1, 0], [0, 0, -1, 0]], "enclose no solid")):
         with pytest.raises(csg.ModelError, match=message):
             csg.ConvexPolyhedron(planes)
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("';' * 60_000_000", "FormatError x.csg: line 1, column 10000001: more than 10000000 statements"),
+    ("'#' * 1_000_000 + 'cube(2);'", "loaded 1"),
+    ("'cube(size=' + '-' * 1001 + '1);'", "cube: size [-1, -1, -1] has no volume"),
+    ("'cube(size=[0:1:2]);'", "cube: size must be a number or [x, y, z], got [0 : 1 : 2]"),
+])
+def test_openscad_reader_is_bounded_in_memory_and_time(text, expected):
+    """Tokens are read as the parser goes (60 MB of ';' held every token: more than 4 GB);
+    repeated modifiers count once (a million '#' were quadratic); signs in a row are read in a
+    loop (a thousand raised RecursionError); a range argument is shown as OpenSCAD writes it."""
+    out, seconds, peak = run_isolated(f"""
+        import mitsuba_csg as csg
+        from mitsuba_csg.formats import openscad
+        try:
+            model = openscad.loads({text}, "x.csg")
+            print("loaded", model.leaf_count)
+        except csg.CSGError as e:
+            print(type(e).__name__, e)
+    """)
+    assert expected in out, out
+    assert seconds < 30 and peak < 1000, (seconds, peak)

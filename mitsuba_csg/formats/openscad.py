@@ -144,9 +144,8 @@ def _unescape(m: re.Match) -> str:
     return _ESCAPES.get(e, e)
 
 
-def _tokens(src: _Source) -> list[tuple[str, object, int]]:
+def _tokens(src: _Source):
     """(kind, value, offset) triples: kind is 'num', 'id', 'str', a punctuation character, or EOF."""
-    out = []
     text = src.text
     for m in _TOKEN.finditer(text):
         kind = m.lastgroup
@@ -157,21 +156,20 @@ def _tokens(src: _Source) -> list[tuple[str, object, int]]:
             if _NUMBER_TAIL.match(text, m.end()):
                 tail = re.match(r"[A-Za-z0-9_.+-]*", text[m.end():m.end() + 40]).group()
                 src.fail(pos, f"malformed number {s + tail!r}")
-            out.append(("num", float(s), pos))
+            yield ("num", float(s), pos)
         elif kind == "id":
-            out.append(("id", s, pos))
+            yield ("id", s, pos)
         elif kind == "str":
-            out.append(("str", _ESCAPE.sub(_unescape, s[1:-1]), pos))
+            yield ("str", _ESCAPE.sub(_unescape, s[1:-1]), pos)
         elif kind == "punct":
-            out.append((s, s, pos))
+            yield (s, s, pos)
         elif s == "/*":
             src.fail(pos, "unterminated comment /* ... (no closing */)")
         elif s == '"':
             src.fail(pos, "unterminated string (no closing \" on this line)")
         else:
             src.fail(pos, f"unexpected character {s!r}")
-    out.append((EOF, None, len(text)))
-    return out
+    yield (EOF, None, len(text))
 
 
 def _describe_token(tok) -> str:
@@ -203,10 +201,33 @@ class _Statement:
         self.name, self.args, self.pos, self.modifiers, self.children = name, args, pos, modifiers, []
 
 
+class _TokenWindow:
+    """The token stream indexed like a list, read lazily and forgetting what the parser has
+    passed: a file of many tokens costs memory for a few, not for all of them."""
+
+    __slots__ = ("stream", "buffer", "offset", "last")
+
+    def __init__(self, stream):
+        self.stream, self.buffer, self.offset, self.last = stream, [], 0, None
+
+    def __getitem__(self, i: int):
+        k = i - self.offset
+        if k >= 4096:                     # the parser never looks back: drop what it passed
+            del self.buffer[:k]
+            self.offset, k = i, 0
+        while k >= len(self.buffer):
+            tok = next(self.stream, None)
+            if tok is None:
+                tok = self.last           # past the end, the end-of-file token repeats
+            self.last = tok
+            self.buffer.append(tok)
+        return self.buffer[k]
+
+
 class _Parser:
     def __init__(self, src: _Source):
         self.src = src
-        self.toks = _tokens(src)
+        self.toks = _TokenWindow(_tokens(src))
         self.i = 0
         self.count = 0
 
@@ -225,11 +246,15 @@ class _Parser:
         tok = self.toks[self.i]
         kind, val, pos = tok
         if kind in ("-", "+"):
-            self.i += 1
+            # Signs in a row are read in a loop (a thousand of them nested Python calls).
+            negative = False
+            while self.toks[self.i][0] in ("-", "+"):
+                negative ^= self.toks[self.i][0] == "-"
+                self.i += 1
             v = self.value(depth)
             if isinstance(v, bool) or not isinstance(v, float):
                 self.src.fail(pos, f"unary {kind} needs a number, got {'a vector' if isinstance(v, list) else repr(v)}")
-            return -v if kind == "-" else v
+            return -v if negative else v
         self.i += 1
         if kind == "num" or kind == "str":
             return val
@@ -307,17 +332,19 @@ class _Parser:
                                    f"{top.name or 'a { block'} at {self.src.where(top.pos)} is not closed")
             modifiers = ""
             while kind in ("#", "%", "!", "*"):
-                modifiers += kind
+                if kind not in modifiers:          # each modifier counts once, however often repeated
+                    modifiers += kind
                 self.i += 1
                 kind, val, pos = self.toks[self.i]
+            # Empty statements count too, so that a file of nothing but ';' is bounded in time.
+            self.count += 1
+            if self.count > MAX_STATEMENTS:
+                self.src.fail(pos, f"more than {MAX_STATEMENTS} statements")
             if kind == ";":
                 self.i += 1
                 if mode == "single":
                     stack.pop()
                 continue
-            self.count += 1
-            if self.count > MAX_STATEMENTS:
-                self.src.fail(pos, f"more than {MAX_STATEMENTS} statements")
             if len(stack) > MAX_DEPTH:
                 self.src.fail(pos, f"statements nested more than {MAX_DEPTH} deep")
             if kind == "{":
@@ -1135,6 +1162,8 @@ def _scad(value) -> str:
         return '"' + escaped.replace("\n", "\\n").replace("\t", "\\t").replace("\r", "\\r") + '"'
     if isinstance(value, list):
         return "[" + ", ".join(_scad(v) for v in value) + "]"
+    if isinstance(value, _Range):
+        return "[" + " : ".join(_scad(v) for v in value.values) + "]"
     raise FormatError(f"cannot write {value!r} as OpenSCAD source")
 
 
@@ -1150,6 +1179,8 @@ def _show(value, limit: int = 60) -> str:
             return '"' + v + '"'
         if isinstance(v, list):
             return "[" + ", ".join(text(x) for x in v[:8]) + (", ..." if len(v) > 8 else "") + "]"
+        if isinstance(v, _Range):
+            return "[" + " : ".join(text(x) for x in v.values) + "]"
         return repr(v)
     s = text(value)
     return s if len(s) <= limit else s[:limit - 3] + "..."
