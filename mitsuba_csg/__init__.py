@@ -22,6 +22,7 @@ ensure_variant()
 from .errors import CSGError, ModelError, TreeTooDeepError  # noqa: E402
 from .model import (Box, Cone, ConvexPolyhedron, Cylinder, Hyperboloid, Mesh, MeshOrientationWarning, Node,  # noqa: E402
                     Operation, Paraboloid, Primitive, Prism, Sphere, Torus, difference, intersection, union)
+from .engine.lowering import PrecisionWarning  # noqa: E402
 from .engine.optimize import OptimizedModel, optimize  # noqa: E402
 from .queries import (Hits, IterationLimitWarning, Prepared, RayHits, contains, prepare, rays_to_device,  # noqa: E402
                       trace, trace_rays)
@@ -55,7 +56,7 @@ def to_mesh(model, segments: int = 64):
 __all__ = [
     "Box", "CSGError", "Cone", "ConvexPolyhedron", "Cylinder", "Hits", "Hyperboloid", "IterationLimitWarning", "Mesh",
     "MeshOrientationWarning", "ModelError",
-    "Node", "Operation", "OptimizedModel", "Paraboloid", "Prepared", "Primitive", "Prism", "RayHits", "Sphere", "Torus",
+    "Node", "Operation", "OptimizedModel", "Paraboloid", "PrecisionWarning", "Prepared", "Primitive", "Prism", "RayHits", "Sphere", "Torus",
     "TreeTooDeepError", "contains", "difference", "intersection", "load", "model_ref", "optimize", "prepare",
     "rays_to_device", "register_plugins", "save", "to_mesh", "trace", "trace_rays", "union",
 ]

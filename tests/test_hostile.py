@@ -201,3 +201,76 @@ def test_openscad_reader_is_bounded_in_memory_and_time(text, expected):
     """)
     assert expected in out, out
     assert seconds < 30 and peak < 1000, (seconds, peak)
+
+
+@pytest.mark.parametrize("exponent", [-24, -12, 0, 12, 24])
+def test_the_kernel_traces_a_scene_of_any_size(exponent):
+    """The kernel works in the scene's own frame (root box centred, half-side 1, unit ray
+    directions): a sphere with a spherical bite taken out, at any scale from 1e-24 to 1e24
+    and far from the origin, gives the analytic first hit (a sphere of radius 1e-20 or 1e20
+    used to miss every ray)."""
+    import numpy as np
+
+    import mitsuba_csg as csg
+    s = 10.0 ** exponent
+    shift = np.array([3.0, -2.0, 1.0]) * s
+    model = (csg.Sphere(1.0) - csg.Sphere(0.5).translate((0, 0, -1))).scale(s).translate(shift)
+    rng = np.random.default_rng(exponent + 100)
+    xy = rng.uniform(-0.9, 0.9, (400, 2))
+    xy = xy[np.hypot(*xy.T) < 0.95]
+    rho2 = (xy ** 2).sum(1)
+    z_enter = -np.sqrt(1 - rho2)                         # unit sphere, entered from below
+    bitten = rho2 + (z_enter + 1) ** 2 < 0.25
+    z_hit = np.where(bitten, -1 + np.sqrt(np.maximum(0.25 - rho2, 0)), z_enter)
+    o = np.column_stack([xy, np.full(len(xy), -5.0)]) * s + shift
+    hits = csg.trace(model, o, np.tile([0, 0, 2.0], (len(xy), 1)))
+    expected = (z_hit + 5.0) / 2.0 * s                   # t along a direction of length 2
+    np.testing.assert_allclose(hits.t, expected, rtol=2e-5)
+    normals = np.where(bitten[:, None], -(np.column_stack([xy, z_hit + 1]) / 0.5), np.column_stack([xy, z_hit]))
+    np.testing.assert_allclose(hits.normal, normals, atol=1e-3)
+
+
+@pytest.mark.parametrize("model, message", [
+    ("csg.Sphere(1e-31)", r"primitive 0 \(Sphere, in leaves\(\) order\): its box \(size 2e-31\) is smaller than 1e-30"),
+    ("csg.Sphere(1e31)", r"its box \(size 2e\+31\) reaches beyond 1e\+30 from the origin"),
+    ("csg.Sphere(1.0).translate((1e300, 0, 0))", r"reaches beyond 1e\+30 from the origin"),
+    ("csg.Box(5e-324)", r"primitive 0 \(Box, in leaves\(\) order\): its box \(size 0\) is smaller than 1e-30"),
+    ("csg.Box(1e308) | csg.Box(1.0)", r"primitive 0 \(Box.*reaches beyond 1e\+30"),
+    ("csg.Box(1.0) - csg.Sphere(1e-16)", r"primitive 1 \(Sphere.*smaller than 1e-15 of the scene's size 1"),
+])
+def test_sizes_float32_cannot_trace_are_refused_by_name(model, message):
+    import numpy as np
+
+    import mitsuba_csg as csg
+    with pytest.raises(csg.ModelError, match=message):
+        csg.trace(eval(model), np.zeros((1, 3)), np.array([[0, 0, 1.0]]))
+    with pytest.raises(csg.ModelError, match=message):
+        eval(model).bounds()
+
+
+def test_parts_too_small_or_too_far_for_float32_are_warned_about():
+    import numpy as np
+
+    import mitsuba_csg as csg
+    with pytest.warns(csg.PrecisionWarning, match=r"1 primitive\(s\) are smaller than 2\^-18 of the scene's size"):
+        csg.prepare(csg.Box(1.0) - csg.Sphere(1e-7).translate((0.5, 0, 0)))
+    with pytest.warns(csg.PrecisionWarning, match="lies 1e\\+05 from the origin but is only 2 across"):
+        csg.prepare(csg.Sphere(1.0).translate((1e5, 0, 0)))
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        csg.prepare(csg.Box(1.0) - csg.Sphere(1e-4).translate((0.5, 0, 0)))
+        # an "infinite" medium as Geant4 users write it: a 1e22 mm box, traced from inside
+        hits = csg.trace(csg.Box(1e22), np.zeros((1, 3)), np.array([[1.0, 0, 0]]))
+    assert abs(hits.t[0] - 5e21) < 1e-5 * 5e21 and not hits.entering[0]
+
+
+def test_a_gdml_scale_that_makes_a_placement_singular_names_the_element(tmp_path):
+    import mitsuba_csg as csg
+    structure = ('<volume name="V"><materialref ref="G4_AIR"/><solidref ref="b"/></volume>\n'
+                 '<volume name="World"><materialref ref="G4_AIR"/><solidref ref="w"/>'
+                 '<physvol name="pv1"><volumeref ref="V"/><scale name="s" x="1e30" y="1" z="1"/></physvol></volume>')
+    path = tmp_path / "scaled.gdml"
+    path.write_text(_gdml('<box name="w" x="100" y="100" z="100"/>', structure))
+    with pytest.raises(csg.CSGError, match=r'scaled.gdml: line \d+: <physvol name="pv1">: transform: singular'):
+        csg.load(str(path))

@@ -42,7 +42,7 @@ import drjit as dr
 
 from . import layout as K
 from . import shapes
-from .device import KernelTree, gather_prim, node_record
+from .device import KernelTree, gather_prim, node_record, scene_rays
 from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, LEAF, LOOP_CLOSER, MISS, NO_LEAF, RET_CLOSER, RET_L,
                      RET_L_ELSE_LOOP_R, RET_R, RET_R_ELSE_LOOP_L, UNION)
 
@@ -113,6 +113,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     """Run the automaton. Returns (t, leaf node, info, finished, steps) per lane, all detached."""
     b = tree.b
     n = dr.width(o.x)
+    o, d, k = scene_rays(tree, o, d)
+    tmin, tmax = tmin * k, tmax * k
     inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
     tie = _tie_tolerance(b, tree, o, d)
 
@@ -306,5 +308,5 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     finished = state == DONE
     # A provisional hit at the root can only sit at tmax: nothing before it.
     hit = finished & (K.info_class(info_l) != MISS) & (t_l <= tmax) & ~K.info_provisional(info_l)
-    t = dr.select(hit, t_l, dr.inf)
+    t = dr.select(hit, t_l / k, dr.inf)
     return t, dr.select(hit, leaf_l, NO_LEAF), info_l, finished, steps

@@ -63,7 +63,9 @@ class KernelTree:
     num_nodes: int
     num_prims: int
     max_iterations: int
-    extent: float           # largest |coordinate| of the root box: the scene's magnitude for ties
+    extent: float           # largest |coordinate| of the root box (scene frame): the scene's magnitude for ties
+    centre: tuple           # world -> scene frame: x' = (x - centre) * inv_scale
+    inv_scale: float
     has_meshes: bool        # the kernel includes the mesh BVH walk only where there are mesh leaves
     options: TraversalOptions = field(default_factory=TraversalOptions)
 
@@ -95,6 +97,12 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     if height > MAX_STACK:
         raise TreeTooDeepError(f"the CSG tree is {height} operations deep; the kernel allows {MAX_STACK}. "
                                "Optimize it (csg.optimize) or restructure it.")
+    # The kernel works in the scene's own frame: the root box centred on the origin, its
+    # largest half-side 1. Rays are mapped there on entry (`scene_rays`), hits keep their t,
+    # and float32 then traces a scene of any size (a 1e22 mm "infinite" box as well as a
+    # micrometre part) the same way (docs/limits.md).
+    centre, inv_scale = _scene_frame(lower[root], upper[root])
+    lower, upper = (lower - centre) * inv_scale, (upper - centre) * inv_scale
     pad = _box_pad(lower, upper)
     # An empty box (lower > upper on some axis: the dummy leaf, an intersection of disjoint
     # boxes) is stored as NaN: every slab comparison with NaN is false, so the box test
@@ -107,7 +115,11 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     flags = K.node_flags(kind.astype(np.uint32), neg.astype(np.uint32), order, left_high)
     node_record = np.stack([flags, left, np.where(right < 0, 0, right), np.where(parent < 0, 0, parent)], 1)
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
-    prim_record[:, K.PRIM_ROWS:K.PRIM_ROWS + 12] = flat.prim_to_canonical.reshape(-1, 12)
+    # world -> canonical after scene -> world (x = centre + x' / inv_scale)
+    rows = flat.prim_to_canonical.copy()
+    rows[:, :, 3] += rows[:, :, :3] @ centre
+    rows[:, :, :3] /= inv_scale
+    prim_record[:, K.PRIM_ROWS:K.PRIM_ROWS + 12] = rows.reshape(-1, 12)
     prim_record[:, K.PRIM_PARAMS:K.PRIM_PARAMS + 2] = flat.prim_param
     words = np.stack([flat.prim_plane_start, K.count_shape(flat.prim_plane_count, flat.prim_shape)], 1)
     prim_record[:, K.PRIM_PLANE_START:K.PRIM_COUNT_SHAPE + 1] = words.astype(np.uint32).view(np.float32)
@@ -135,7 +147,30 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         mesh_nodes=owned(b.Float, mesh_nodes.ravel()), table=owned(b.UInt32, K.TABLE_ARRAY),
         root=int(root), root_is_leaf=root_is_leaf, stack_size=stack_size_class(height), num_nodes=n_nodes,
         num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent,
+        centre=tuple(float(c) for c in centre), inv_scale=float(inv_scale),
         has_meshes=bool(np.any(flat.prim_shape == K.MESH)), options=options or TraversalOptions())
+
+
+def _scene_frame(lower, upper) -> tuple[np.ndarray, float]:
+    """(centre, 1 / largest half-side) of the root box; the identity for an empty or unbounded box."""
+    half = 0.5 * (np.asarray(upper, np.float64) - np.asarray(lower, np.float64))
+    if not (np.all(np.isfinite(half)) and np.all(half >= 0) and half.max() > 0):
+        return np.zeros(3), 1.0
+    return 0.5 * (np.asarray(upper, np.float64) + np.asarray(lower, np.float64)), 1.0 / float(half.max())
+
+
+def scene_rays(tree, o, d):
+    """(origins, unit directions, k) of rays in the scene frame of `tree`: the point at t on
+    a world ray is at t' = k t on the scene ray. Unit directions keep squared lengths inside
+    float32 whatever the scene's size; the frame's numbers are opaque values, so a second
+    model of another size runs the same kernel."""
+    b = tree.b
+    inv_scale = dr.opaque(b.Float, tree.inv_scale)
+    centre = b.Array3f(*(dr.opaque(b.Float, c) for c in tree.centre))
+    length = dr.norm(d)
+    usable = length > 0
+    unit = dr.select(usable, d / length, d)      # a zero direction stays zero (it misses)
+    return (o - centre) * inv_scale, unit, dr.select(usable, length * inv_scale, 1.0)
 
 
 def _box_pad(lower, upper):

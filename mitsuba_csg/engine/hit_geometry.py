@@ -14,7 +14,7 @@ import drjit as dr
 
 from . import layout as K
 from .backend import ad_module
-from .device import gather_prim
+from .device import gather_prim, scene_rays
 from .shapes import surface_function
 
 
@@ -35,7 +35,8 @@ def hit_normal(tree, prim, info, o, d, t, active):
     """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`."""
     b = tree.b
     rows, shape, param, plane_start, _ = gather_prim(b, tree, prim, active)
-    p = o + t * d
+    o, d, k = scene_rays(tree, o, d)
+    p = o + (t * k) * d
     p4 = b.Array4f(p.x, p.y, p.z, 1.0)
     p_canonical = b.Array3f(dr.dot(rows[0], p4), dr.dot(rows[1], p4), dr.dot(rows[2], p4))
     face, plane = _face_plane(b.module, tree.planes, shape, plane_start, info, active)

@@ -15,6 +15,7 @@ Node ids are preorder, so every parent has a smaller id than its children.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -227,10 +228,65 @@ def primitive_tree(prims) -> FlatTree:
     triangles = np.vstack(triangle_chunks) if triangle_chunks else np.zeros((0, K.TRIANGLE_FLOATS))
     vertices = dict(plane_sets.values())
     mesh = _mesh_nodes(bvhs)
-    to_canonical = np.linalg.inv(to_world)[:, :3, :]
     lower, upper = primitive_bounds(shape, to_world, param, plane_start, vertices)
+    check_float32_range(lower, upper, [p for p, _, _ in prims])
+    to_canonical = np.linalg.inv(to_world)[:, :3, :]
     return FlatTree(*_no_nodes(), shape, to_canonical, to_world, param, plane_start, plane_count, lower, upper,
                     materials, planes=planes, plane_vertices=vertices, triangles=triangles, **mesh)
+
+
+# What the float32 kernel traces (docs/limits.md). The kernel works in the scene's own frame
+# (engine.device: root box centred, half-side 1, unit ray directions), so the scene's absolute
+# size does not matter; the rays reach it as float32 world coordinates, which bounds sizes and
+# coordinates absolutely (MIN_LENGTH, MAX_COORDINATE). Relative to the scene, a primitive
+# below UNREPRESENTABLE of its size overflows float32 in its own frame, and one below RESOLVED
+# lies within the tie window of the scene's coordinates (docs/accuracy.md): rays may miss it
+# or merge its faces. A scene far from the world origin for its size gets coarse float32 ray
+# origins (FAR_FROM_ORIGIN).
+MIN_LENGTH = 1e-30
+MAX_COORDINATE = 1e30
+UNREPRESENTABLE = 1e-15
+RESOLVED = 2.0**-18
+FAR_FROM_ORIGIN = 2.0**10
+
+
+class PrecisionWarning(UserWarning):
+    """Part of the model is too small, or too far from the origin, for float32 to trace reliably."""
+
+
+def check_float32_range(lower: np.ndarray, upper: np.ndarray, prims: list | None = None) -> None:
+    """Refuse primitives outside the range the float32 kernel traces; warn about those it
+    cannot trace reliably. `prims` names them in messages."""
+    def name(i):
+        kind = type(prims[i]).__name__ if prims is not None else "primitive"
+        return f"primitive {i} ({kind}, in leaves() order)"
+    if not len(lower):
+        return
+    finite = np.all(np.isfinite(lower) & np.isfinite(upper), axis=1)
+    if not finite.all():
+        i = int(np.flatnonzero(~finite)[0])
+        raise ModelError(f"{name(i)}: its bounds are not finite (sizes or translations beyond float64's range)")
+    size = np.max(upper - lower, axis=1)
+    reach = np.maximum(np.abs(lower), np.abs(upper)).max(axis=1)
+    scene = float(np.max(upper.max(axis=0) - lower.min(axis=0)))
+    for bad, what in ((size < MIN_LENGTH, f"is smaller than {MIN_LENGTH:g}, below float32 world coordinates"),
+                      (reach > MAX_COORDINATE, f"reaches beyond {MAX_COORDINATE:g} from the origin"),
+                      (size < UNREPRESENTABLE * scene,
+                       f"is smaller than {UNREPRESENTABLE:g} of the scene's size {scene:.3g}, beyond float32 in "
+                       f"its own frame")):
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ModelError(f"{name(i)}: its box (size {size[i]:.3g}) {what} (docs/limits.md)")
+    small = size < RESOLVED * scene
+    if small.any():
+        i = int(np.argmin(size))
+        warnings.warn(f"{int(small.sum())} primitive(s) are smaller than 2^-18 of the scene's size {scene:.3g}, "
+                      f"below what float32 traces reliably (the smallest: {name(i)}, size {size[i]:.3g}); rays may "
+                      f"miss them or merge their faces (docs/limits.md)", PrecisionWarning, stacklevel=4)
+    if reach.max() > FAR_FROM_ORIGIN * scene:
+        warnings.warn(f"the model lies {reach.max():.3g} from the origin but is only {scene:.3g} across: float32 "
+                      f"ray origins near it are {reach.max() * 2.0**-24:.3g} apart; move it nearer the origin "
+                      f"(docs/limits.md)", PrecisionWarning, stacklevel=4)
 
 
 def _mesh_nodes(bvhs) -> dict:
@@ -261,6 +317,7 @@ def with_primitive_transforms(flat: FlatTree, to_world: np.ndarray) -> FlatTree:
     """`flat` with new canonical -> world matrices (P, 4, 4): primitive and node bounds re-derived."""
     lower, upper = primitive_bounds(flat.prim_shape, to_world, flat.prim_param, flat.prim_plane_start,
                                     flat.plane_vertices)
+    check_float32_range(lower, upper)
     prims = replace(flat, prim_to_world=to_world, prim_to_canonical=np.linalg.inv(to_world)[:, :3, :],
                     prim_lower=lower, prim_upper=upper)
     return with_nodes(prims, flat.node_kind, flat.node_negative, flat.node_left, flat.node_right,

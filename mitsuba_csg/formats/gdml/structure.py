@@ -10,6 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ...errors import ModelError
 from ...model import transform as tf
 from ...model.nodes import MAX_LEAVES, Node, Operation
 from ..reading import FormatError
@@ -73,9 +74,9 @@ def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> l
     copies_of: dict[int, list] = {}
     # (element, world matrix, depth, ancestors, the copy's own solid or None); assemblies are
     # expanded at the placing level
-    stack = [(doc.volumes[world], tf.IDENTITY, 0, (world,), None)]
+    stack = [(doc.volumes[world], tf.IDENTITY, 0, (world,), None, world_el)]
     while stack:
-        vol, matrix, level, ancestors, own_solid = stack.pop()
+        vol, matrix, level, ancestors, own_solid, placer = stack.pop()
         is_assembly = vol.tag == "assembly"
         if not is_assembly and (level > 0 or show_world):
             if own_solid is None:
@@ -85,7 +86,11 @@ def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> l
             else:
                 node = _volume_solid(doc, solids, vol, own_solid)
             if node is not None:
-                placed.append(PlacedVolume(node if matrix is tf.IDENTITY else node.transform(matrix), level,
+                try:
+                    node = node if matrix is tf.IDENTITY else node.transform(matrix)
+                except ModelError as e:        # the placements down to here compose to no usable map
+                    doc.fail(placer, f"{e} (the placement of {_strip_pointer(vol.get('name', ''))!r} in the world)")
+                placed.append(PlacedVolume(node, level,
                                            _strip_pointer(vol.get("name", "")), _colour(doc, vol)))
         child_level = level if is_assembly else level + 1
         if depth is not None and child_level > depth:
@@ -113,7 +118,7 @@ def placed_volumes(doc, solids, depth: int | None, show_world: bool | None) -> l
             count += len(copies)
             if count > MAX_PLACEMENTS:
                 doc.fail(pv, f"more than {MAX_PLACEMENTS} placed volumes")
-            children.extend((target, tf.compose(matrix, _frozen(local)), child_level, ancestors + (ref,), solid)
+            children.extend((target, tf.compose(matrix, _frozen(local)), child_level, ancestors + (ref,), solid, pv)
                             for local, solid in copies)
         stack.extend(reversed(children))   # popped in document order: a depth-first pre-order walk
     if not placed:
@@ -176,6 +181,15 @@ def _check_expanded_size(doc, solids, world, world_el, depth, show_world) -> Non
 
 def _copies(doc, solids, vol, pv) -> list[tuple[np.ndarray, Node | None]]:
     """(placement in the mother, the copy's own solid or None) of each copy `pv` places."""
+    try:
+        return _placed_copies(doc, solids, vol, pv)
+    except ModelError as e:
+        if isinstance(e, FormatError):
+            raise
+        doc.fail(pv, str(e))
+
+
+def _placed_copies(doc, solids, vol, pv) -> list[tuple[np.ndarray, Node | None]]:
     if pv.tag == "replicavol":
         return replica_copies(doc, pv)
     if pv.tag == "divisionvol":
