@@ -37,6 +37,9 @@ class Prepared:
     replays: dict = field(default_factory=dict, repr=False, compare=False)
 
 
+# The kernel counts iterations in a 32-bit word.
+MAX_ITERATIONS = 2**31 - 1
+
 # Frozen traces kept per prepared model: each holds its recorded kernel launches.
 _MAX_REPLAYS = 4
 
@@ -51,6 +54,10 @@ def prepare(model, backend=None, *, optimize: bool = True, positive: bool = Fals
     """
     if isinstance(model, Prepared):
         return model
+    if max_iterations is not None and (isinstance(max_iterations, bool) or not isinstance(max_iterations, int)
+                                       or not 1 <= max_iterations <= MAX_ITERATIONS):
+        raise CSGError(f"max_iterations: expected an integer in 1..{MAX_ITERATIONS} (or None for the "
+                       f"model's own bound), got {max_iterations!r:.40}")
     if backend is None:
         backend = default_backend()
     if isinstance(model, FlatTree):
@@ -140,7 +147,10 @@ class Hits:
 
 
 def _rays(a, what: str) -> np.ndarray:
-    arr = np.asarray(a, dtype=np.float64)
+    try:
+        arr = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as e:        # strings, ragged rows, objects
+        raise CSGError(f"{what}: expected an (N, 3) array of numbers ({str(e).splitlines()[0][:120]})") from None
     if arr.ndim == 1 and arr.shape == (3,):
         arr = arr[None]
     if arr.ndim != 2 or arr.shape[1] != 3:
@@ -169,8 +179,12 @@ def trace(model, origins, directions, tmin: float = 0.0, tmax: float = np.inf, *
     o, d = _rays(origins, "origins"), _rays(directions, "directions")
     if len(o) != len(d):
         raise CSGError(f"origins and directions differ in length ({len(o)} vs {len(d)})")
-    if np.any(np.all(d == 0, axis=1)):
-        raise CSGError(f"directions: row {int(np.flatnonzero(np.all(d == 0, axis=1))[0])} is the zero vector")
+    # float32 carries the rays: a direction that rounds to zero there would silently miss.
+    tiny = np.max(np.abs(d), axis=1) < np.finfo(np.float32).tiny
+    if np.any(tiny):
+        raise CSGError(f"directions: row {int(np.flatnonzero(tiny)[0])} is the zero vector, or rounds to it in "
+                       f"float32 (components below {np.finfo(np.float32).tiny:.3g})")
+    tmin, tmax = _ray_parameter(tmin, "tmin"), _ray_parameter(tmax, "tmax")
     if np.isnan(tmin) or np.isnan(tmax) or tmin > tmax:
         raise CSGError(f"need tmin <= tmax, got tmin={tmin}, tmax={tmax}")
     prepared = prepare(model, optimize=optimize, max_iterations=max_iterations)
@@ -188,6 +202,15 @@ def trace(model, origins, directions, tmin: float = 0.0, tmax: float = np.inf, *
                       f"({prepared.tree.max_iterations}); their t is NaN", IterationLimitWarning, stacklevel=2)
     return Hits(hits.t.numpy(), hits.normal.numpy().T.copy(), prim, hits.entering.numpy(),
                 unfinished, hits.steps.numpy())
+
+
+def _ray_parameter(value, what: str) -> float:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise CSGError(f"{what}: expected a number, got {type(value).__name__} {value!r:.40}")
+    try:
+        return float(value)
+    except OverflowError:
+        raise CSGError(f"{what}: an integer beyond the float range") from None
 
 
 # A direction with no special relation to axes or common angles, so that membership rays

@@ -4,6 +4,7 @@ subprocess so that a regression cannot take the test run down with it."""
 from __future__ import annotations
 
 import math
+import os
 import subprocess
 import sys
 import textwrap
@@ -274,3 +275,65 @@ def test_a_gdml_scale_that_makes_a_placement_singular_names_the_element(tmp_path
     path.write_text(_gdml('<box name="w" x="100" y="100" z="100"/>', structure))
     with pytest.raises(csg.CSGError, match=r'scaled.gdml: line \d+: <physvol name="pv1">: transform: singular'):
         csg.load(str(path))
+
+
+def test_files_that_are_not_regular_files_are_refused_without_blocking(tmp_path):
+    """A FIFO as the model file, or as a GDML external entity, blocked forever."""
+    import mitsuba_csg as csg
+    for suffix in ("json", "gdml", "csg", "stl", "scad"):
+        fifo = tmp_path / f"pipe.{suffix}"
+        os.mkfifo(fifo)
+        with pytest.raises(csg.CSGError, match=f"pipe.{suffix}: not a regular file"):
+            csg.load(str(fifo))
+    os.mkfifo(tmp_path / "entity.xml")
+    (tmp_path / "doc.gdml").write_text(
+        '<?xml version="1.0"?>\n<!DOCTYPE gdml [<!ENTITY solids SYSTEM "entity.xml">]>\n'
+        '<gdml><solids>&solids;</solids></gdml>\n')
+    with pytest.raises(csg.CSGError, match=r"external entity .*is not a regular file"):
+        csg.load(str(tmp_path / "doc.gdml"))
+
+
+def test_messages_never_echo_a_megabyte():
+    import json
+
+    import mitsuba_csg as csg
+    from mitsuba_csg.formats import gdml, native_json
+    big = "x" * 1_000_000
+    sphere = {"type": "sphere", "radius": 1}
+    documents = [{"root": {**sphere, big: 2}}, {"root": {**sphere, "type": big}},
+                 {"materials": {"m": {"type": "diffuse"}}, "root": {**sphere, "material": big}}]
+    for document in documents:
+        with pytest.raises(csg.CSGError) as info:
+            native_json.loads(json.dumps({"format": "mitsuba-csg", "version": 1, **document}))
+        assert len(str(info.value)) < 400 and "(1000000 characters)" in str(info.value), str(info.value)[:300]
+    with pytest.raises(csg.CSGError) as info:
+        gdml.loads(_gdml(f'<box name="{big}" x="-1" y="1" z="1"/>', ""), "x.gdml")
+    assert len(str(info.value)) < 2100
+    text = '{"format": "mitsuba-csg", "version": 1, "root": {"type": "sphere", "radius": %s}}' % ("1" * 5000)
+    with pytest.raises(csg.CSGError, match=r"root\.radius: must be finite, got a 5000-digit integer"):
+        native_json.loads(text)
+
+
+@pytest.mark.parametrize("call, message", [
+    ("csg.trace(S, o, d, max_iterations=-1)", "max_iterations: expected an integer in 1..2147483647"),
+    ("csg.trace(S, o, d, max_iterations=10**12)", "max_iterations: expected an integer in 1..2147483647"),
+    ("csg.trace(S, o, d, max_iterations='3')", "max_iterations: expected an integer"),
+    ("csg.trace(S, o, d, tmin='0')", "tmin: expected a number, got str"),
+    ("csg.trace(S, o, d, tmax=10**400)", "tmax: an integer beyond the float range"),
+    ("csg.trace(S, [['a', 'b', 'c']], d[:1])", r"origins: expected an \(N, 3\) array of numbers"),
+    ("csg.trace(S, [[0, 0], [1, 2, 3]], d)", r"origins: expected an \(N, 3\) array of numbers"),
+    ("csg.contains(S, [[0, 0], [1]])", r"points: expected an \(N, 3\) array of numbers"),
+    ("csg.trace(S, o[:1], np.array([[0, 0, 1e-320]]))", "row 0 is the zero vector, or rounds to it in float32"),
+    ("csg.Sphere(10**400)", "Sphere.radius: must be finite, got an integer beyond the float range"),
+    ("csg.Box(True)", "Box.size: expected a number, got True"),
+    ("csg.Box('1')", "Box.size: expected a number, got '1'"),
+    ("csg.Box([1, 2])", "Box.size: expected a number or 3 numbers, got 2 items"),
+])
+def test_api_arguments_raise_the_packages_errors(call, message):
+    import numpy as np
+
+    import mitsuba_csg as csg
+    S = csg.Sphere(1.0)
+    o, d = np.array([[0, 0, -5.0], [0.5, 0, -5]]), np.array([[0, 0, 1.0], [0, 0, 1]])
+    with pytest.raises(csg.CSGError, match=message):
+        eval(call)

@@ -71,10 +71,10 @@ def _path_text(path) -> str:
             parts.append(f"<{hidden} more path segments>")
         elif isinstance(key, int):
             parts.append(f"[{key}]")
-        elif _IDENTIFIER.match(key):
+        elif _IDENTIFIER.match(key) and len(key) <= 60:
             parts.append(key if i == 0 else "." + key)
         else:
-            parts.append(f"[{json.dumps(key)}]")
+            parts.append(f"[{json.dumps(key)}]" if len(key) <= 60 else f"[{json.dumps(key[:57])}...]")
     return "".join(parts)
 
 
@@ -139,11 +139,19 @@ def _describe(value) -> str:
 
 
 def _key(value) -> str:
-    return repr(value) if isinstance(value, str) else _describe(value)
+    return _quoted(value) if isinstance(value, str) else _describe(value)
 
 
 def _keys_text(keys) -> str:
-    return ", ".join(repr(k) for k in keys)
+    keys = list(keys)
+    more = f" and {len(keys) - 8} more" if len(keys) > 8 else ""
+    return ", ".join(_quoted(k) for k in keys[:8]) + more
+
+
+def _quoted(text: str, limit: int = 60) -> str:
+    """A name from the file for a message: quoted, cut to `limit` characters (a file may hold
+    a megabyte-long key)."""
+    return repr(text) if len(text) <= limit else repr(text[:limit - 3]) + f"... ({len(text)} characters)"
 
 
 # ---- Value checks (each returns the checked value or raises FormatError) ----
@@ -512,8 +520,8 @@ def _tree(root, source, materials) -> Node:
         if "material" in data:
             material = _name(data["material"], source, (path, "material"), "a material name")
             if materials is not None and material not in materials:
-                known = ", ".join(sorted(materials)) if materials else "none"
-                _fail(source, (path, "material"), f"unknown material {material!r}; "
+                known = _keys_text(sorted(materials)) if materials else "none"
+                _fail(source, (path, "material"), f"unknown material {_quoted(material)}; "
                                                   f'"materials" defines: {known}')
 
         if kind in PRIMITIVES:
@@ -560,9 +568,20 @@ def _read_text(path) -> tuple[str, str]:
     return text.removeprefix("\ufeff"), source
 
 
+def _integer(digits: str):
+    """A JSON integer; one with more digits than Python converts (4300) stays a marker that
+    the value checks name at its path, like NaN or Infinity (no float holds it anyway)."""
+    if len(digits) > _MAX_INT_DIGITS:
+        return _NonFinite(f"a {len(digits.lstrip('-'))}-digit integer")
+    return int(digits)
+
+
+_MAX_INT_DIGITS = 4000
+
+
 def _parse(text: str, source: str):
     try:
-        return json.loads(text, parse_constant=_NonFinite, object_pairs_hook=_object_pairs)
+        return json.loads(text, parse_constant=_NonFinite, parse_int=_integer, object_pairs_hook=_object_pairs)
     except RecursionError:
         pass                                            # too deep for the C scanner: go iterative
     except json.JSONDecodeError as e:
@@ -626,7 +645,7 @@ def _parse_iteratively(text: str, max_nesting: int):
                 if m:
                     integer, frac, exp = m.groups()
                     try:
-                        value = float(integer + (frac or "") + (exp or "")) if frac or exp else int(integer)
+                        value = float(integer + (frac or "") + (exp or "")) if frac or exp else _integer(integer)
                     except ValueError as e:
                         raise Error(str(e), text, pos) from None
                     pos = m.end()

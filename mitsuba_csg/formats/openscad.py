@@ -1225,6 +1225,7 @@ def load_scad(path, *, on_unsupported: str = "error", facets: str = "auto") -> N
     model.csg model.scad`, `formats.openscad_tool`), which `loads` reads. Without OpenSCAD
     installed, a CSGError says how to install it or export the tree elsewhere."""
     from . import openscad_tool
+    read_model_bytes(path, MAX_FILE_BYTES)      # exists, is a plain file, not too large: what OpenSCAD reads
     text = openscad_tool.export_csg(path)
     name = os.path.basename(os.fspath(path))
     return loads(text, f"{name} (as OpenSCAD's .csg export)", on_unsupported=on_unsupported, facets=facets)

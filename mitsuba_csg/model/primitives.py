@@ -51,12 +51,12 @@ class Box(Primitive):
 
     def __init__(self, size=(1.0, 1.0, 1.0), *, material: str | None = None):
         super().__init__(material=material)
-        s = np.asarray(size, dtype=np.float64)
-        if s.ndim == 0:
-            s = np.full(3, float(s))
-        if s.shape != (3,):
-            raise ModelError(f"Box.size: expected a number or 3 numbers, got shape {s.shape}")
-        self.size = tuple(_positive(v, f"Box.size[{i}]") for i, v in enumerate(s))
+        if isinstance(size, (list, tuple, np.ndarray)):
+            if len(size) != 3 or (isinstance(size, np.ndarray) and size.ndim != 1):
+                raise ModelError(f"Box.size: expected a number or 3 numbers, got {len(size)} items")
+            self.size = tuple(_positive(v, f"Box.size[{i}]") for i, v in enumerate(size))
+        else:               # one number for all three edges, checked like any other size
+            self.size = (_positive(size, "Box.size"),) * 3
 
     def canonical(self):
         return np.diag([*(0.5 * np.array(self.size)), 1.0]), (0.0, 0.0), None

@@ -76,7 +76,7 @@ class Document:
     def where(self, el) -> str:
         line = self.lines.get(id(el))
         name = el.get("name")
-        tag = f'<{el.tag} name="{name}">' if name is not None else f"<{el.tag}>"
+        tag = f'<{short(el.tag, 40)} name="{short(name)}">' if name is not None else f"<{short(el.tag, 40)}>"
         return f"{self.source}: line {line}: {tag}" if line else f"{self.source}: {tag}"
 
     def fail(self, el, message: str):

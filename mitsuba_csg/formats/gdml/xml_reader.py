@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import re
+import stat
 import xml.etree.ElementTree as ET
 import xml.parsers.expat as expat
 
@@ -67,6 +68,9 @@ def parse_xml(data: bytes, source: str, base_dir: str | None):
             raise _ParseAbort(f"external entity {name!r} nested more than {MAX_ENTITY_NESTING} deep "
                               f"(an entity that includes itself?)")
         try:
+            if not stat.S_ISREG(os.stat(path).st_mode):
+                raise _ParseAbort(f"external entity {name!r} ({system_id!r}) is not a regular file (a FIFO, "
+                                  f"device, socket or directory), so it is not read")
             with open(path, "rb") as f:
                 content = f.read(MAX_FILE_BYTES + 1)
         except OSError as e:
