@@ -44,7 +44,11 @@ def _set_variant(name: str | None):
                            + ", ".join(v for v in mi.variants() if not v.startswith("scalar")))
         if name.startswith("scalar"):
             raise CLIError(f"variant {name!r} is a scalar variant; mitsuba-csg needs a JIT one (e.g. llvm_ad_rgb)")
-        mi.set_variant(name)
+        try:
+            mi.set_variant(name)
+        except (ImportError, RuntimeError) as e:     # e.g. a CUDA variant on a machine without CUDA
+            raise CLIError(f"variant {name!r} cannot start on this machine ({str(e).splitlines()[0]}); "
+                           f"llvm_ad_rgb runs on any CPU") from None
     import mitsuba_csg as csg
     csg.register_plugins()
     return mi, csg
@@ -135,16 +139,20 @@ def _render(args) -> int:
     out = Path(args.output)
     if out.suffix.lower() != ".exr":
         raise CLIError(f"{out}: the output is an OpenEXR file (.exr); add --png for a preview")
+    _check_writable(out)
     if args.input is None:
         scene = mi.load_dict(demo_scene_dict(mi, csg, width, height, args.spp, integrator))
         what = "the built-in Cheese (500 holes)"
     elif args.input.lower().endswith(".xml"):
         if not Path(args.input).exists():
             raise CLIError(f"{args.input}: no such file")
+        # Mitsuba refuses parameters a scene does not use: pass those it names ($spp ...).
+        text = Path(args.input).read_text(errors="replace")
+        params = {k: v for k, v in (("spp", args.spp), ("width", width), ("height", height)) if f"${k}" in text}
         try:
-            scene = mi.load_file(args.input, spp=args.spp, width=width, height=height)
+            scene = mi.load_file(args.input, **params)
         except Exception as e:                               # Mitsuba's parser errors
-            raise CLIError(f"{args.input}: {str(e).splitlines()[0]}") from e
+            raise CLIError(f"{args.input}: {_mitsuba_reason(str(e))}") from e
         what = args.input
     elif args.input.lower().endswith(MODEL_SUFFIXES):
         scene = mi.load_dict(scene_dict(mi, csg, _model_parts(args), width, height, args.spp, integrator))
@@ -173,7 +181,6 @@ def _render(args) -> int:
         _progress(i + 1, passes, time.perf_counter() - t0)
     image = total / float(args.spp)
     elapsed = time.perf_counter() - t0
-    out.parent.mkdir(parents=True, exist_ok=True)
     pixels = np.array(image)
     names = channel_names(pixels.shape[-1], render_with.aov_names())
     written = [write_exr(out, pixels, names)]
@@ -183,6 +190,30 @@ def _render(args) -> int:
     print(f"rendered {what} at {width}x{height}, {args.spp} spp, in {elapsed:.1f} s -> "
           + ", ".join(str(p) for p in written))
     return 0
+
+
+def _check_writable(out: Path) -> None:
+    """Before a render that may take hours: the output's folder exists or can be made, and a
+    file can be created in it."""
+    import tempfile
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out.parent):
+            pass
+    except OSError as e:
+        raise CLIError(f"{out}: cannot write there ({e.strerror or e})") from None
+    if out.is_dir():
+        raise CLIError(f"{out}: is a directory")
+
+
+def _mitsuba_reason(message: str) -> str:
+    """Mitsuba's error without the Python traceback it embeds for a failing Python plugin: its
+    place (file, line, plugin) and the exception's own last line, which says why."""
+    lines = [line for line in message.splitlines() if line.strip()]
+    if len(lines) > 1 and "Traceback (most recent call last)" in lines[0]:
+        head = lines[0].split("Traceback (most recent call last)")[0].rstrip(": ")
+        return f"{head}: {lines[-1].strip()}"
+    return lines[0] if lines else message
 
 
 def _model_parts(args):

@@ -36,13 +36,38 @@ def write_exr(path, image: np.ndarray, names: list[str]) -> Path:
     channels = {name: np.ascontiguousarray(image[..., k]) for k, name in enumerate(names)}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     path = Path(path)
-    with OpenEXR.File(header, channels) as f:
-        f.write(str(path))
+
+    def write(partial: Path):
+        with OpenEXR.File(header, channels) as f:
+            f.write(str(partial))
+        # A full disk can leave a short file without an error: read it back before trusting it.
+        try:
+            with OpenEXR.File(str(partial)) as back:     # the reader groups R, G, B as "RGB"
+                count = sum(c.pixels.shape[2] if c.pixels.ndim == 3 else 1 for c in back.channels().values())
+                complete = count == len(names)
+        except Exception:
+            complete = False
+        if not complete:
+            raise OSError(f"{path}: the image was not written completely (is the disk full?)")
+    return _written_whole(path, write)
+
+
+def _written_whole(path: Path, write) -> Path:
+    """Write through a partial file beside `path`, renamed over it only once complete, so a
+    failed write never leaves a truncated image under the real name."""
+    partial = path.with_name(f".{path.name}.partial{path.suffix}")
+    try:
+        write(partial)
+        if not partial.is_file() or partial.stat().st_size == 0:
+            raise OSError(f"{path}: nothing was written (is the disk full?)")
+        partial.replace(path)
+    finally:
+        partial.unlink(missing_ok=True)
     return path
 
 
 def write_png(path, rgb: np.ndarray) -> Path:
     """A tonemapped sRGB preview of linear RGB (Mitsuba's own conversion)."""
     import mitsuba as mi
-    mi.util.write_bitmap(str(path), np.ascontiguousarray(np.asarray(rgb, dtype=np.float32)))
-    return Path(path)
+    pixels = np.ascontiguousarray(np.asarray(rgb, dtype=np.float32))
+    return _written_whole(Path(path), lambda partial: mi.util.write_bitmap(str(partial), pixels, write_async=False))

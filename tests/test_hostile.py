@@ -337,3 +337,59 @@ def test_api_arguments_raise_the_packages_errors(call, message):
     o, d = np.array([[0, 0, -5.0], [0.5, 0, -5]]), np.array([[0, 0, 1.0], [0, 0, 1]])
     with pytest.raises(csg.CSGError, match=message):
         eval(call)
+
+
+SCENE_WITHOUT_PARAMETERS = """<scene version="3.0.0">
+  <integrator type="csg_path"/>
+  <sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, 6" target="0, 0, 0" up="0, 1, 0"/>
+  </transform><film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="12"/></film></sensor>
+  <emitter type="constant"/>
+  <shape type="csg"><string name="filename" value="{model}"/></shape>
+</scene>
+"""
+
+
+def test_cli_render_errors_name_the_reason_and_come_before_the_render(tmp_path, capsys):
+    """A bad csg shape in a scene showed only Mitsuba's first line ("Traceback ..."); a scene
+    that does not use $spp/$width/$height was refused for unused parameters; an unwritable
+    output was found after the render; an unusable variant was an internal ImportError."""
+    from mitsuba_csg.cli import main
+    bad = tmp_path / "bad.xml"
+    bad.write_text(SCENE_WITHOUT_PARAMETERS.format(model="nope.json"))
+    assert main(["render", str(bad), "-o", str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err
+    assert 'failed to instantiate shape plugin of type "csg": FormatError: nope.json: no such file' in err, err
+    assert "Traceback" not in err
+    good = tmp_path / "good.xml"
+    good.write_text(SCENE_WITHOUT_PARAMETERS.format(model=ROOT / "scenes" / "models" / "demo_cheese_small.json"))
+    assert main(["render", str(good), "-o", str(tmp_path / "good.exr")]) == 0
+    assert (tmp_path / "good.exr").stat().st_size > 0
+    t0 = time.perf_counter()
+    assert main(["render", "--size", "640x360", "--spp", "64", "-o", "/proc/no/such/place.exr"]) == 2
+    assert "cannot write there" in capsys.readouterr().err
+    assert time.perf_counter() - t0 < 5                  # refused before rendering
+    import mitsuba as mi
+    if "cuda_ad_rgb" in mi.variants():
+        code = main(["render", "--variant", "cuda_ad_rgb", "--size", "8x8", "--spp", "1", "-o",
+                     str(tmp_path / "cuda.exr")])
+        err = capsys.readouterr().err
+        assert code == 0 or "cannot start on this machine" in err, err
+        mi.set_variant("llvm_ad_rgb")
+
+
+def test_an_image_that_was_not_written_whole_is_an_error(tmp_path, monkeypatch):
+    """A full disk left a short file and "rendered ... -> out.exr" with exit 0: the image is
+    read back before it takes the real name."""
+    import numpy as np
+    import OpenEXR
+
+    from mitsuba_csg import images
+
+    class Truncating(OpenEXR.File):
+        def write(self, path):
+            open(path, "wb").close()                     # what ENOSPC leaves behind
+    monkeypatch.setattr(images.OpenEXR, "File", Truncating)
+    out = tmp_path / "out.exr"
+    with pytest.raises(OSError, match="not written completely"):
+        images.write_exr(out, np.zeros((4, 4, 3)), ["R", "G", "B"])
+    assert list(tmp_path.iterdir()) == []                # neither the image nor a partial file
