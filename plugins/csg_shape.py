@@ -66,10 +66,20 @@ class CSGShape(mi.Mesh):
     def __init__(self, props: mi.Properties):
         model, source = _model_from(props)
         optimize = props.get("optimize", True)
+        if not isinstance(optimize, bool):
+            raise CSGError(f"csg shape ({source}): 'optimize' must be a boolean (<boolean name=\"optimize\" "
+                           f"value=\"false\"/>), got {type(optimize).__name__} {str(optimize)[:40]!r}")
         to_world = props.get("to_world", mi.ScalarTransform4f())
+        if not hasattr(to_world, "matrix"):
+            raise CSGError(f"csg shape ({source}): 'to_world' must be a transform (<transform name=\"to_world\">), "
+                           f"got {type(to_world).__name__} {str(to_world)[:40]!r}")
         # BSDF children: the default one plus one per material name; Mesh only takes one.
+        # Every other property is refused by name, as Mitsuba's own plugins refuse unused ones.
         bsdfs = {}
         for name in list(props.keys()):
+            if name in _PROPERTIES:
+                del props[name]
+                continue
             value = props[name]
             if isinstance(value, mi.Emitter):
                 raise CSGError(f"csg shape ({source}): cannot be an area emitter (it is traced analytically, "
@@ -77,9 +87,15 @@ class CSGShape(mi.Mesh):
             if isinstance(value, mi.BSDF):
                 bsdfs[value.id() or name] = value
                 del props[name]
-        for key in ("filename", "model", "optimize", "to_world"):
-            if key in props:
-                del props[key]
+            elif isinstance(value, mi.Shape):
+                raise CSGError(f"csg shape ({source}): cannot hold other shapes ('{name}'); put them beside it in "
+                               f"the scene, or make them part of the model")
+            elif isinstance(value, mi.Medium):
+                raise CSGError(f"csg shape ({source}): media ('{name}') are not supported on csg shapes: the csg_* "
+                               f"integrators do not trace participating media")
+            else:
+                raise CSGError(f"csg shape ({source}): unknown property '{name}'; a csg shape takes filename or "
+                               f"model, optimize, to_world and BSDFs")
         matrix = np.array(to_world.matrix, dtype=np.float64).reshape(4, 4)
         if isinstance(model, OptimizedModel):
             model = model.source
@@ -158,9 +174,15 @@ class CSGShape(mi.Mesh):
                 f"height={flat.height}, optimize={self.optimize}]")
 
 
+_PROPERTIES = ("filename", "model", "optimize", "to_world")
+
+
 def _model_from(props):
     if ("filename" in props) == ("model" in props):
         raise CSGError("csg shape: give exactly one of 'filename' or 'model'")
+    for key in ("filename", "model"):
+        if key in props and not isinstance(props[key], str):
+            raise CSGError(f"csg shape: '{key}' must be a string, got {type(props[key]).__name__}")
     if "filename" in props:
         from mitsuba_csg import load
         path = str(props["filename"])

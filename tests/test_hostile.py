@@ -393,3 +393,23 @@ def test_an_image_that_was_not_written_whole_is_an_error(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="not written completely"):
         images.write_exr(out, np.zeros((4, 4, 3)), ["R", "G", "B"])
     assert list(tmp_path.iterdir()) == []                # neither the image nor a partial file
+
+
+@pytest.mark.parametrize("extra, message", [
+    ({"optimise": False}, "unknown property 'optimise'; a csg shape takes filename or model, optimize, to_world"),
+    ({"optimize": "false"}, "'optimize' must be a boolean"),
+    ({"to_world": "translate(1, 0, 0)"}, "'to_world' must be a transform"),
+    ({"inner": {"type": "sphere"}}, "cannot hold other shapes ('inner')"),
+    ({"interior": {"type": "homogeneous"}}, "media ('interior') are not supported on csg shapes"),
+])
+def test_the_csg_shape_refuses_properties_it_would_ignore(extra, message):
+    """Misspelt or mistyped properties were silently ignored or misread ("false" was true)."""
+    import mitsuba as mi
+
+    import mitsuba_csg as csg
+    with pytest.raises(Exception) as info:
+        mi.load_dict({"type": "csg", "model": csg.model_ref(csg.Sphere(1.0)), **extra})
+    assert message in str(info.value), str(info.value)[-300:]
+    shape = mi.load_dict({"type": "csg", "model": csg.model_ref(csg.Sphere(1.0)), "optimize": False,
+                          "bsdf": {"type": "diffuse"}})
+    assert shape.optimize is False
