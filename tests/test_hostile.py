@@ -413,3 +413,31 @@ def test_the_csg_shape_refuses_properties_it_would_ignore(extra, message):
     shape = mi.load_dict({"type": "csg", "model": csg.model_ref(csg.Sphere(1.0)), "optimize": False,
                           "bsdf": {"type": "diffuse"}})
     assert shape.optimize is False
+
+
+def test_models_too_big_for_the_memory_are_refused_up_front(tmp_path, monkeypatch):
+    """The memory a model needs is estimated from its counts (and a JSON file's size) and
+    compared with what the machine has available, so a model that cannot fit is refused
+    with the numbers instead of dying with a MemoryError. The machine here is made small."""
+    import json
+
+    import mitsuba_csg as csg
+    from mitsuba_csg import memory
+    monkeypatch.setattr(memory, "available_bytes", lambda: 512 * 2**20)
+    model = csg.Sphere(1.0)
+    for _ in range(20):                                  # 2^20 primitives from 21 nodes
+        model = model | model.translate((0.5, 0, 0))
+    t0 = time.perf_counter()
+    with pytest.raises(csg.ModelError, match=r"a model of 1048576 primitives needs about 2.0 GiB of memory, "
+                                             r"and 512 MiB are available"):
+        csg.prepare(model)
+    assert time.perf_counter() - t0 < 1
+    path = tmp_path / "big.json"
+    spheres = [{"type": "sphere", "radius": 1.0, "transform": [{"translate": [i, 0, 0]}]} for i in range(50_000)]
+    path.write_text(json.dumps({"format": "mitsuba-csg", "version": 1,
+                                "root": {"type": "union", "children": spheres}}))
+    monkeypatch.setattr(memory, "available_bytes", lambda: 16 * 2**20)
+    with pytest.raises(csg.ModelError, match=r"big.json: reading \d+ bytes of JSON needs about \d+ MiB of memory, and 16 MiB"):
+        csg.load(str(path))
+    monkeypatch.undo()
+    assert memory.available_bytes() is None or memory.available_bytes() > 2**20

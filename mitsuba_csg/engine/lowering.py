@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .. import memory
 from ..errors import ModelError
 from ..model.nodes import DIFFERENCE, INTERSECTION, UNION, Node, Operation
 from . import layout as K
@@ -82,6 +83,7 @@ def item_tree(model: Node, prims: list):
     """Return the n-ary item tree: ('leaf', prim) or (kind, [items]); fills `prims`."""
     if not isinstance(model, Node):
         raise ModelError(f"expected a CSG model node, got {type(model).__name__}")
+    memory.require(model.leaf_count * memory.BYTES_PER_PRIMITIVE, f"a model of {model.leaf_count} primitives")
     leaf_iter = model.walk_leaves()
     # Postorder over the model; the leaf walk yields primitives in the same DFS order.
     root_box = []

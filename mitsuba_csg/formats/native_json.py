@@ -25,6 +25,7 @@ from json.decoder import scanstring
 
 import numpy as np
 
+from .. import memory
 from ..errors import ModelError
 from ..model import transform as tf
 from ..model import values
@@ -38,6 +39,7 @@ VERSION = 1                      # the version `save` writes
 SUPPORTED_VERSIONS = (1,)        # the versions `load` reads
 MAX_DEPTH = 10_000               # operation levels above a leaf (the root is at depth 0)
 MAX_NODES = 10_000_000           # nodes in one document, operations and primitives together
+MAX_FILE_BYTES = 2 ** 30         # a larger file is refused before it is read
 MAX_MATERIAL_DEPTH = 64          # nesting of one material's BSDF dict
 
 
@@ -558,7 +560,8 @@ def from_dict_with_materials(data, source: str = "<dict>") -> tuple[Node, dict]:
 # ---- Reading: file -> document ----
 
 def _read_text(path) -> tuple[str, str]:
-    raw, source = read_model_bytes(path)
+    raw, source = read_model_bytes(path, MAX_FILE_BYTES)
+    memory.require(len(raw) * memory.BYTES_PER_JSON_BYTE, f"{source}: reading {len(raw)} bytes of JSON")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:

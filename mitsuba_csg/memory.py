@@ -1,0 +1,36 @@
+"""The memory a job will need, estimated from its counts, against what the machine has free:
+work that cannot fit is refused up front with the numbers, not ended by a MemoryError (or
+the kernel's OOM killer) halfway through."""
+from __future__ import annotations
+
+from .errors import ModelError
+
+# Measured peaks (docs/limits.md): lowering, optimizing and uploading a model costs about
+# 1.5 kB per primitive beyond the model itself (0.4 kB per primitive); parsing native JSON
+# about 5 bytes per byte of the file.
+BYTES_PER_PRIMITIVE = 2000
+BYTES_PER_JSON_BYTE = 6
+
+
+def available_bytes() -> int | None:
+    """Memory the system can give without swapping (Linux's MemAvailable), or None if unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def require(needed: float, what: str) -> None:
+    """Refuse `what` when it needs more than the machine has available."""
+    available = available_bytes()
+    if available is not None and needed > available:
+        raise ModelError(f"{what} needs about {_size(needed)} of memory, and {_size(available)} are available; "
+                         f"use a machine with more memory or a smaller model")
+
+
+def _size(n: float) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MiB"
