@@ -232,12 +232,13 @@ def test_the_kernel_traces_a_scene_of_any_size(exponent):
 
 
 @pytest.mark.parametrize("model, message", [
-    ("csg.Sphere(1e-31)", r"primitive 0 \(Sphere, in leaves\(\) order\): its box \(size 2e-31\) is smaller than 1e-30"),
-    ("csg.Sphere(1e31)", r"its box \(size 2e\+31\) reaches beyond 1e\+30 from the origin"),
+    ("csg.Sphere(1e-31)", r"primitive 0 \(Sphere, in leaves\(\) order\): its box \(2e-31 to 2e-31 across\) is thinner than 1e-30"),
+    ("csg.Sphere(1e31)", r"its box \(2e\+31 to 2e\+31 across\) reaches beyond 1e\+30 from the origin"),
     ("csg.Sphere(1.0).translate((1e300, 0, 0))", r"reaches beyond 1e\+30 from the origin"),
-    ("csg.Box(5e-324)", r"primitive 0 \(Box, in leaves\(\) order\): its box \(size 0\) is smaller than 1e-30"),
+    ("csg.Box(5e-324)", r"primitive 0 \(Box, in leaves\(\) order\): its box \(0 to 0 across\) is thinner than 1e-30"),
     ("csg.Box(1e308) | csg.Box(1.0)", r"primitive 0 \(Box.*reaches beyond 1e\+30"),
-    ("csg.Box(1.0) - csg.Sphere(1e-16)", r"primitive 1 \(Sphere.*smaller than 1e-15 of the scene's size 1"),
+    ("csg.Box([1.0, 1.0, 5e-324]) - csg.Sphere(0.5)", r"primitive 0 \(Box.*0 to 1 across\) is thinner than 1e-30"),
+    ("csg.Box(1.0) - csg.Sphere(1e-16)", r"primitive 1 \(Sphere.*thinner than 1e-15 of the scene's size 1"),
 ])
 def test_sizes_float32_cannot_trace_are_refused_by_name(model, message):
     import numpy as np

@@ -232,7 +232,7 @@ def primitive_tree(prims) -> FlatTree:
     mesh = _mesh_nodes(bvhs)
     lower, upper = primitive_bounds(shape, to_world, param, plane_start, vertices)
     check_float32_range(lower, upper, [p for p, _, _ in prims])
-    to_canonical = np.linalg.inv(to_world)[:, :3, :]
+    to_canonical = _inverses(to_world, prims)
     return FlatTree(*_no_nodes(), shape, to_canonical, to_world, param, plane_start, plane_count, lower, upper,
                     materials, planes=planes, plane_vertices=vertices, triangles=triangles, **mesh)
 
@@ -269,16 +269,18 @@ def check_float32_range(lower: np.ndarray, upper: np.ndarray, prims: list | None
         i = int(np.flatnonzero(~finite)[0])
         raise ModelError(f"{name(i)}: its bounds are not finite (sizes or translations beyond float64's range)")
     size = np.max(upper - lower, axis=1)
+    thickness = np.min(upper - lower, axis=1)      # a flat primitive is as unrepresentable as a tiny one
     reach = np.maximum(np.abs(lower), np.abs(upper)).max(axis=1)
     scene = float(np.max(upper.max(axis=0) - lower.min(axis=0)))
-    for bad, what in ((size < MIN_LENGTH, f"is smaller than {MIN_LENGTH:g}, below float32 world coordinates"),
-                      (reach > MAX_COORDINATE, f"reaches beyond {MAX_COORDINATE:g} from the origin"),
-                      (size < UNREPRESENTABLE * scene,
-                       f"is smaller than {UNREPRESENTABLE:g} of the scene's size {scene:.3g}, beyond float32 in "
+    for bad, what in ((reach > MAX_COORDINATE, f"reaches beyond {MAX_COORDINATE:g} from the origin"),
+                      (thickness < MIN_LENGTH, f"is thinner than {MIN_LENGTH:g}, below float32 world coordinates"),
+                      (thickness < UNREPRESENTABLE * scene,
+                       f"is thinner than {UNREPRESENTABLE:g} of the scene's size {scene:.3g}, beyond float32 in "
                        f"its own frame")):
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise ModelError(f"{name(i)}: its box (size {size[i]:.3g}) {what} (docs/limits.md)")
+            raise ModelError(f"{name(i)}: its box ({thickness[i]:.3g} to {size[i]:.3g} across) {what} "
+                             f"(docs/limits.md)")
     small = size < RESOLVED * scene
     if small.any():
         i = int(np.argmin(size))
@@ -289,6 +291,16 @@ def check_float32_range(lower: np.ndarray, upper: np.ndarray, prims: list | None
         warnings.warn(f"the model lies {reach.max():.3g} from the origin but is only {scene:.3g} across: float32 "
                       f"ray origins near it are {reach.max() * 2.0**-24:.3g} apart; move it nearer the origin "
                       f"(docs/limits.md)", PrecisionWarning, stacklevel=4)
+
+
+def _inverses(to_world: np.ndarray, prims: list | None = None) -> np.ndarray:
+    """World -> canonical rows (P, 3, 4); a singular map names its primitive."""
+    try:
+        return np.linalg.inv(to_world)[:, :3, :]
+    except np.linalg.LinAlgError:
+        i = int(np.argmin(np.abs(np.linalg.det(to_world[:, :3, :3]))))
+        kind = type(prims[i][0]).__name__ if prims is not None else "primitive"
+        raise ModelError(f"primitive {i} ({kind}, in leaves() order): its transform is singular") from None
 
 
 def _mesh_nodes(bvhs) -> dict:
@@ -320,7 +332,7 @@ def with_primitive_transforms(flat: FlatTree, to_world: np.ndarray) -> FlatTree:
     lower, upper = primitive_bounds(flat.prim_shape, to_world, flat.prim_param, flat.prim_plane_start,
                                     flat.plane_vertices)
     check_float32_range(lower, upper)
-    prims = replace(flat, prim_to_world=to_world, prim_to_canonical=np.linalg.inv(to_world)[:, :3, :],
+    prims = replace(flat, prim_to_world=to_world, prim_to_canonical=_inverses(to_world),
                     prim_lower=lower, prim_upper=upper)
     return with_nodes(prims, flat.node_kind, flat.node_negative, flat.node_left, flat.node_right,
                       flat.node_parent)

@@ -58,9 +58,13 @@ def _read_stl(data: bytes, path: str):
         words = line.split()
         if words and words[0].lower() == "vertex":
             try:
-                coords.append([float(w) for w in words[1:4]])
+                xyz = [float(w) for w in words[1:]]
             except ValueError:
-                raise FormatError(f"{path}:{number}: a vertex needs three numbers, got {line.strip()!r}") from None
+                xyz = []
+            if len(xyz) != 3 or not all(np.isfinite(xyz)):
+                raise FormatError(f"{path}:{number}: a vertex needs three finite numbers, got "
+                                  f"{line.strip()[:80]!r}") from None
+            coords.append(xyz)
     if not coords or len(coords) % 3:
         raise FormatError(f"{path}: ASCII STL with {len(coords)} vertices, not facets of three")
     vertices = np.array(coords)
