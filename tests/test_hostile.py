@@ -16,9 +16,11 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run_isolated(code: str, timeout: float = 120.0) -> tuple[str, float, float]:
-    """(output, seconds, peak resident MB) of `code` run by a fresh Python."""
-    code = textwrap.dedent(code) + (
+def run_isolated(code: str, timeout: float = 120.0, memory_cap_gb: float = 4.0) -> tuple[str, float, float]:
+    """(output, seconds, peak resident MB) of `code` run by a fresh Python whose address space
+    is capped, so that a regression fails there instead of taking the machine down."""
+    cap = int(memory_cap_gb * 2**30)
+    code = f"import resource\nresource.setrlimit(resource.RLIMIT_AS, ({cap}, {cap}))\n" + textwrap.dedent(code) + (
         "\nimport resource\nprint('peak_mb', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)\n")
     start = time.perf_counter()
     try:
