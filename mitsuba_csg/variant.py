@@ -1,4 +1,4 @@
-"""Mitsuba variant selection: the engine needs a JIT variant (LLVM or CUDA) with RGB."""
+"""Mitsuba variant selection: the engine needs a JIT variant (LLVM or CUDA; RGB, mono or spectral)."""
 from __future__ import annotations
 
 import glob
@@ -32,5 +32,7 @@ def ensure_variant() -> str:
 
 def check_variant(variant: str) -> None:
     if variant.startswith("scalar_"):
-        raise CSGError(f"mitsuba-csg needs a JIT variant (llvm_ad_rgb, llvm_rgb, cuda_ad_rgb or cuda_rgb); "
+        import mitsuba as mi
+        jit = [v for v in mi.variants() if v.startswith(("llvm_", "cuda_"))]
+        raise CSGError(f"mitsuba-csg needs a JIT variant ({', '.join(jit) or 'none is installed'}); "
                        f"the current variant is {variant!r}. Call mi.set_variant('llvm_ad_rgb') first.")

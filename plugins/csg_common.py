@@ -76,8 +76,18 @@ class SceneCSG:
         return blocked
 
 
+def check_depth_types(props, name: str) -> None:
+    """max_depth and rr_depth must be integers, as Mitsuba's own integrators require
+    (`max_depth: 2.5` is refused there, not rounded)."""
+    for key in ("max_depth", "rr_depth"):
+        if key in props and (isinstance(props[key], bool) or not isinstance(props[key], int)):
+            raise ValueError(f"{name}: \"{key}\" must be an integer, got {type(props[key]).__name__} "
+                             f"{props[key]!r}")
+
+
 def read_depths(props, name: str):
     """max_depth and rr_depth as Mitsuba's ADIntegrator reads them, for non-AD integrators."""
+    check_depth_types(props, name)
     max_depth = props.get("max_depth", 6)
     if max_depth < 0 and max_depth != -1:
         raise ValueError(f"{name}: \"max_depth\" must be set to -1 (infinite) or a value >= 0")
@@ -85,3 +95,11 @@ def read_depths(props, name: str):
     if rr_depth <= 0:
         raise ValueError(f"{name}: \"rr_depth\" must be set to a value greater than zero!")
     return (2**32 - 1 if max_depth == -1 else max_depth), rr_depth
+
+
+def camera_ray_valid(scene: mi.Scene, hide_emitters: bool, depth):
+    """The alpha of a camera ray, as Mitsuba's path tracers give it: a ray that hits something
+    is valid, and so is every ray when a visible environment emitter lies behind the scene."""
+    if scene.environment() is not None and not hide_emitters:
+        return dr.full(mi.Bool, True, dr.width(depth))
+    return depth != 0

@@ -6,7 +6,7 @@ import mitsuba as mi
 
 from mitsuba.ad.integrators.common import mis_weight
 
-from .csg_common import SceneCSG, read_depths
+from .csg_common import SceneCSG, camera_ray_valid, read_depths
 
 
 class CSGPathIntegrator(mi.SamplingIntegrator):
@@ -44,10 +44,14 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
         super().__init__(props)
         self.max_depth, self.rr_depth = read_depths(props, "csg_path")
         self.hide_emitters = props.get("hide_emitters", False)
+        if not isinstance(self.hide_emitters, bool):
+            raise ValueError(f"csg_path: \"hide_emitters\" must be a boolean, got {self.hide_emitters!r}")
 
     @dr.syntax
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,
                medium: mi.Medium = None, active: bool = True):
+        if dr.hint(self.max_depth == 0, mode="scalar"):   # as Mitsuba's path: nothing, not even emitters
+            return mi.Spectrum(0), dr.zeros(mi.Bool, dr.width(ray.d)), []
         csg = SceneCSG(scene)
         bsdf_ctx = mi.BSDFContext()
 
@@ -105,7 +109,7 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
             beta[rr_active] *= dr.rcp(rr_prob)
             active = active_next & (~rr_active | rr_continue) & (beta_max != 0.0)
 
-        return L, (depth != 0), []
+        return L, camera_ray_valid(scene, self.hide_emitters, depth), []
 
     def aov_names(self):
         return []

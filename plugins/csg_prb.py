@@ -5,7 +5,7 @@ import drjit as dr
 import mitsuba as mi
 from mitsuba.ad.integrators.common import RBIntegrator, mis_weight
 
-from .csg_common import SceneCSG
+from .csg_common import SceneCSG, camera_ray_valid, check_depth_types
 
 
 class CSGPRBIntegrator(RBIntegrator):
@@ -23,6 +23,9 @@ class CSGPRBIntegrator(RBIntegrator):
      * - rr_depth
        - |int|
        - Depth from which Russian roulette may end paths. (Default: 5)
+     * - hide_emitters
+       - |bool|
+       - Hide emitters seen directly by the camera. (Default: false)
 
     A differentiable path tracer (Vicini et al. 2021's path replay, with next-event
     estimation and MIS, as Mitsuba's `prb`) for scenes with `csg` shapes. Gradients flow to
@@ -40,10 +43,17 @@ class CSGPRBIntegrator(RBIntegrator):
         'integrator': {'type': 'csg_prb', 'max_depth': 4}
     """
 
+    def __init__(self, props: mi.Properties):
+        check_depth_types(props, "csg_prb")
+        super().__init__(props)
+
     @dr.syntax
     def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
                δL, state_in, active: mi.Bool, **kwargs):
         primal = mode == dr.ADMode.Primal
+        if dr.hint(self.max_depth == 0, mode="scalar"):   # as Mitsuba's path tracers: nothing at all
+            nothing = mi.Spectrum(0)
+            return nothing, dr.zeros(mi.Bool, dr.width(ray.d)), [], nothing
         csg = SceneCSG(scene)
         bsdf_ctx = mi.BSDFContext()
 
@@ -67,8 +77,10 @@ class CSGPRBIntegrator(RBIntegrator):
             # ---------------------- Direct emission ----------------------
             ds = mi.DirectionSample3f(scene, si=si, ref=si_prev)
             mis = mis_weight(bsdf_pdf_prev, scene.pdf_emitter_direction(si_prev, ds, ~bsdf_delta_prev))
+            # hide_emitters: emitters seen directly by the camera give nothing (as in csg_path)
+            seen = active_next & ~((depth == 0) & self.hide_emitters)
             with dr.resume_grad(when=not primal):
-                Le = β * mis * ds.emitter.eval(si, active_next)
+                Le = β * mis * ds.emitter.eval(si, seen)
 
             # ---------------------- Emitter sampling ----------------------
             active_next &= (depth + 1 < self.max_depth) & si.is_valid()
@@ -133,7 +145,7 @@ class CSGPRBIntegrator(RBIntegrator):
             depth[si.is_valid()] += 1
             active = active_next
 
-        return (L if primal else δL, depth != 0, [], L)
+        return (L if primal else δL, camera_ray_valid(scene, self.hide_emitters, depth), [], L)
 
     def to_string(self):
         return f"CSGPRBIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"

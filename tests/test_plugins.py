@@ -62,6 +62,9 @@ def test_scalar_variants_are_refused():
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert run.returncode != 0
     assert "JIT variant" in run.stderr and "llvm_ad_rgb" in run.stderr
+    # only variants the installed Mitsuba ships are offered (the pip wheel has no llvm_rgb)
+    offered = run.stderr.split("JIT variant (", 1)[1].split(")", 1)[0].split(", ")
+    assert set(offered) <= set(mi.variants()) and "scalar_rgb" not in offered
 
 
 def test_other_variants_and_variant_switch():
@@ -320,3 +323,38 @@ def test_inverse_rendering_recovers_a_radius():
         dr.backward(dr.mean(dr.square(image - target), axis=None))
         opt.step()
     assert abs(opt["radius"][0] - 1.0) < 0.03, opt["radius"]
+
+
+@pytest.mark.parametrize("integrator", ["csg_path", "csg_prb"])
+def test_integrator_details_match_mitsubas_path(integrator):
+    """As Mitsuba's `path`: max_depth 0 renders nothing; an environment emitter makes every
+    camera ray valid (alpha 1; it averaged 0.43); hide_emitters hides the sky seen directly
+    (csg_prb ignored it) and makes alpha the coverage; a fractional max_depth is refused."""
+    shape = {"type": "csg", "model": csg.model_ref(csg.Sphere(1.0)), "bsdf": BSDF}
+
+    def render(**options):
+        d = {"type": "scene", "integrator": {"type": integrator, **options},
+             "sensor": {"type": "perspective", "fov": 40, "to_world": LOOK,
+                        "film": {"type": "hdrfilm", "width": 24, "height": 16, "pixel_format": "rgba",
+                                 "rfilter": {"type": "box"}},
+                        "sampler": {"type": "independent", "sample_count": 4}},
+             "object": shape, "sky": {"type": "constant", "radiance": 0.5}}
+        return np.array(mi.render(mi.load_dict(d)))
+
+    reference = {"type": "path"}
+    mitsuba = np.array(mi.render(mi.load_dict({
+        "type": "scene", "integrator": reference,
+        "sensor": {"type": "perspective", "fov": 40, "to_world": LOOK,
+                   "film": {"type": "hdrfilm", "width": 24, "height": 16, "pixel_format": "rgba",
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": 4}},
+        "object": {"type": "sphere", "bsdf": BSDF}, "sky": {"type": "constant", "radiance": 0.5}})))
+    image = render()
+    assert np.all(image[..., 3] == 1.0) and np.all(mitsuba[..., 3] == 1.0)
+    assert np.all(render(max_depth=0) == 0.0)
+    hidden = render(hide_emitters=True)
+    sky = hidden[..., 3] == 0
+    assert 0.2 < sky.mean() < 0.95 and np.all(hidden[sky][:, :3] == 0.0)
+    assert np.all(image[sky][:, :3] > 0.4)
+    with pytest.raises(Exception, match="max_depth"):
+        render(max_depth=2.5)
