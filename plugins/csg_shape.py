@@ -1,6 +1,8 @@
 """The `csg` shape: a CSG model in a Mitsuba scene."""
 from __future__ import annotations
 
+import warnings
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -115,13 +117,21 @@ class CSGShape(mi.Mesh):
     def _update_proxy_bounds(self):
         flat = self.prepared.flat
         lower, upper = flat.node_lower[flat.root], flat.node_upper[flat.root]
-        params = mi.traverse(self)
+        self._proxy_traversal = True
+        try:
+            params = mi.traverse(self)
+        finally:
+            self._proxy_traversal = False
         params["vertex_positions"] = mi.Float(np.concatenate([lower, upper]).astype(np.float32))
         params["faces"] = mi.UInt32([0, 0, 0])
         params.update()
 
     def traverse(self, callback):
-        super().traverse(callback)
+        # The proxy mesh's own buffers (two box corners, one degenerate face) are ours to set;
+        # users see only what moves the model.
+        if getattr(self, "_proxy_traversal", False):
+            super().traverse(callback)
+            return
         callback.put("primitive_to_world", self.primitive_to_world, mi.ParamFlags.Differentiable)
         for name, bsdf in self.material_bsdfs.items():
             callback.put(f"material_{name}", bsdf, mi.ParamFlags.Differentiable)
@@ -146,10 +156,17 @@ class CSGShape(mi.Mesh):
 
     def _setup_materials(self, bsdfs: dict):
         names = self.prepared.flat.prim_material
+        materials = sorted(set(n for n in names if n))
         default = None
         for key, bsdf in bsdfs.items():
-            if key not in set(n for n in names if n):
-                default = default or bsdf
+            if key in materials:
+                continue
+            if default is None:
+                default = bsdf
+            else:          # Mitsuba would warn of an unused child; so do we, with what would match
+                warnings.warn(f"csg shape ({self.source}): BSDF '{key}' is not used: it matches no material of "
+                              f"the model ({', '.join(materials) or 'the model names none'}) and another BSDF "
+                              f"is already the default", UserWarning, stacklevel=2)
         if default is None:
             default = mi.load_dict({"type": "diffuse"})
         self.set_bsdf(default)
@@ -170,8 +187,11 @@ class CSGShape(mi.Mesh):
 
     def to_string(self):
         flat = self.prepared.flat
+        lower, upper = flat.node_lower[flat.root], flat.node_upper[flat.root]
+        bsdfs = ", ".join(f"{name} -> {type(b).__name__}[{b.id()}]" for name, b in self.material_bsdfs.items())
         return (f"CSGShape[source={self.source!r}, primitives={flat.num_prims}, nodes={flat.num_nodes}, "
-                f"height={flat.height}, optimize={self.optimize}]")
+                f"height={flat.height}, optimize={self.optimize}, bounds=[{lower.tolist()}, {upper.tolist()}], "
+                f"default bsdf={self.bsdf().id()!r}, materials={{{bsdfs}}}]")
 
 
 _PROPERTIES = ("filename", "model", "optimize", "to_world")

@@ -358,3 +358,19 @@ def test_integrator_details_match_mitsubas_path(integrator):
     assert np.all(image[sky][:, :3] > 0.4)
     with pytest.raises(Exception, match="max_depth"):
         render(max_depth=2.5)
+
+
+def test_shape_shows_what_it_holds_and_warns_of_unused_bsdfs():
+    """print(shape) gives bounds and the material -> BSDF map; a second BSDF that matches no
+    material is reported, not dropped silently; mi.traverse lists what moves the model, not
+    the proxy mesh's own buffers."""
+    model = (csg.Box(2.0).with_material("steel") - csg.Sphere(1.25)).with_material("steel")
+    with pytest.warns(UserWarning, match="BSDF 'other' is not used: it matches no material of the model \\(steel\\)"):
+        shape = mi.load_dict({"type": "csg", "model": csg.model_ref(model),
+                              "steel": {"type": "conductor", "id": "steel"},
+                              "first": {"type": "diffuse", "id": "first"},
+                              "other": {"type": "plastic", "id": "other"}})
+    text = str(shape)
+    assert "bounds=[[-1.0" in text and "steel -> " in text and "default bsdf='first'" in text, text
+    keys = set(mi.traverse(shape).keys())
+    assert "primitive_to_world" in keys and not keys & {"vertex_positions", "faces", "face_csgproxy"}, keys
