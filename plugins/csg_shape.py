@@ -45,7 +45,10 @@ class CSGShape(mi.Mesh):
 
     An exact CSG solid, traced analytically by the `csg_*` integrators: the ordinary Mitsuba
     integrators do not see it (it is a proxy mesh with one degenerate triangle spanning the
-    model's bounding box, which keeps scene bounds right). It cannot be an area emitter.
+    model's bounding box, which keeps scene bounds right). It cannot be an area emitter, hold
+    other shapes or media; any other property is refused by name, as Mitsuba's own plugins
+    refuse unused ones, and a BSDF that matches no material once a default is chosen is
+    reported as unused.
 
     `mi.traverse` exposes `primitive_to_world` (differentiable): 12 floats per primitive,
     in `model.leaves()` order, the rows of the 3x4 matrix that maps the primitive's
