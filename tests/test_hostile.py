@@ -440,7 +440,7 @@ def test_models_too_big_for_the_memory_are_refused_up_front(tmp_path, monkeypatc
     path.write_text(json.dumps({"format": "mitsuba-csg", "version": 1,
                                 "root": {"type": "union", "children": spheres}}))
     monkeypatch.setattr(memory, "available_bytes", lambda: 16 * 2**20)
-    with pytest.raises(csg.ModelError, match=r"big.json: reading \d+ bytes of JSON needs about \d+ MiB of memory, and 16 MiB"):
+    with pytest.raises(csg.ModelError, match=r"big.json: reading \d+ bytes of JSON \(50001 nodes\) needs about \d+ MiB of memory, and 16 MiB"):
         csg.load(str(path))
     monkeypatch.undo()
     assert memory.available_bytes() is None or memory.available_bytes() > 2**20

@@ -561,7 +561,10 @@ def from_dict_with_materials(data, source: str = "<dict>") -> tuple[Node, dict]:
 
 def _read_text(path) -> tuple[str, str]:
     raw, source = read_model_bytes(path, MAX_FILE_BYTES)
-    memory.require(len(raw) * memory.BYTES_PER_JSON_BYTE, f"{source}: reading {len(raw)} bytes of JSON")
+    # Every node has a "type": counting them costs one pass over the bytes, no parsing.
+    nodes = raw.count(b'"type"')
+    memory.require(len(raw) * memory.BYTES_PER_JSON_BYTE + nodes * memory.BYTES_PER_JSON_NODE,
+                   f"{source}: reading {len(raw)} bytes of JSON ({nodes} nodes)")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
