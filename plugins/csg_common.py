@@ -13,6 +13,13 @@ class SceneCSG:
 
     def __init__(self, scene: mi.Scene):
         shapes = scene.shapes()
+        for shape in shapes:
+            # Refused rather than ignored: an image without the fog or the absorption would
+            # look plausible and be wrong.
+            if shape.interior_medium() is not None or shape.exterior_medium() is not None:
+                raise ValueError(f"the csg_* integrators do not trace participating media, and shape "
+                                 f"{shape.id() or type(shape).__name__!r} has an interior or exterior medium; "
+                                 f"render media with Mitsuba's volpath (on a mesh of the model)")
         # Duck-typed: each Mitsuba variant has its own CSGShape class.
         self.csg = [s for s in shapes if getattr(s, "is_csg_proxy", False)]
         self.shape_index = {id(s): i for i, s in enumerate(shapes)}

@@ -374,3 +374,18 @@ def test_shape_shows_what_it_holds_and_warns_of_unused_bsdfs():
     assert "bounds=[[-1.0" in text and "steel -> " in text and "default bsdf='first'" in text, text
     keys = set(mi.traverse(shape).keys())
     assert "primitive_to_world" in keys and not keys & {"vertex_positions", "faces", "face_csgproxy"}, keys
+
+
+@pytest.mark.parametrize("integrator", ["csg_path", "csg_prb", "csg_aov"])
+def test_media_are_refused_not_ignored(integrator, capfd):
+    """A medium inside a glass sphere next to a CSG shape rendered as if absent."""
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": integrator},
+                          "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+                          "fog_ball": {"type": "sphere", "id": "fog_ball", "bsdf": {"type": "dielectric"},
+                                       "interior": {"type": "homogeneous"}},
+                          "model": {"type": "csg", "model": csg.model_ref(csg.Box(1.0))}})
+    with pytest.raises(Exception) as info:
+        mi.render(scene)
+    # Mitsuba prints the integrator's own error and raises its render operation's failure
+    shown = str(info.value) + str(info.value.__cause__) + capfd.readouterr().err
+    assert "do not trace participating media, and shape 'fog_ball'" in shown, shown[-500:]
