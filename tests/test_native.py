@@ -232,8 +232,10 @@ def test_file_errors(tmp_path):
         load(write(tmp_path, ""))
     with pytest.raises(FormatError, match=r"not UTF-8 text \(invalid byte at offset 2"):
         load(write(tmp_path, b'{"\xff'))
-    with pytest.raises(FormatError, match="invalid JSON"):
-        load(write(tmp_path, '{"a": ' + "9" * 5000 + "}"))    # beyond Python's int-string limit
+    # beyond Python's int-string limit: named at its path, like NaN or Infinity
+    with pytest.raises(FormatError, match=r"root\.radius: must be finite, got a 5000-digit integer"):
+        load(write(tmp_path, '{"format": "mitsuba-csg", "version": 1, "root": {"type": "sphere", "radius": '
+                   + "9" * 5000 + "}}"))
     bom = "\ufeff" + json.dumps(doc(sphere()))
     assert isinstance(load(write(tmp_path, bom.encode("utf-8"))), Sphere)
 

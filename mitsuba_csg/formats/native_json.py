@@ -150,6 +150,13 @@ def _keys_text(keys) -> str:
     return ", ".join(_quoted(k) for k in keys[:8]) + more
 
 
+def _names_text(names) -> str:
+    """Names the file defines, unquoted, each cut to 60 characters, at most 8 of them."""
+    names = list(names)
+    more = f" and {len(names) - 8} more" if len(names) > 8 else ""
+    return ", ".join(n if len(n) <= 60 else n[:57] + "..." for n in names[:8]) + more
+
+
 def _quoted(text: str, limit: int = 60) -> str:
     """A name from the file for a message: quoted, cut to `limit` characters (a file may hold
     a megabyte-long key)."""
@@ -522,7 +529,7 @@ def _tree(root, source, materials) -> Node:
         if "material" in data:
             material = _name(data["material"], source, (path, "material"), "a material name")
             if materials is not None and material not in materials:
-                known = _keys_text(sorted(materials)) if materials else "none"
+                known = _names_text(sorted(materials)) if materials else "none"
                 _fail(source, (path, "material"), f"unknown material {_quoted(material)}; "
                                                   f'"materials" defines: {known}')
 
@@ -574,7 +581,7 @@ def _read_text(path) -> tuple[str, str]:
     return text.removeprefix("\ufeff"), source
 
 
-def _integer(digits: str):
+def _json_integer(digits: str):
     """A JSON integer; one with more digits than Python converts (4300) stays a marker that
     the value checks name at its path, like NaN or Infinity (no float holds it anyway)."""
     if len(digits) > _MAX_INT_DIGITS:
@@ -587,7 +594,7 @@ _MAX_INT_DIGITS = 4000
 
 def _parse(text: str, source: str):
     try:
-        return json.loads(text, parse_constant=_NonFinite, parse_int=_integer, object_pairs_hook=_object_pairs)
+        return json.loads(text, parse_constant=_NonFinite, parse_int=_json_integer, object_pairs_hook=_object_pairs)
     except RecursionError:
         pass                                            # too deep for the C scanner: go iterative
     except json.JSONDecodeError as e:
@@ -651,7 +658,7 @@ def _parse_iteratively(text: str, max_nesting: int):
                 if m:
                     integer, frac, exp = m.groups()
                     try:
-                        value = float(integer + (frac or "") + (exp or "")) if frac or exp else _integer(integer)
+                        value = float(integer + (frac or "") + (exp or "")) if frac or exp else _json_integer(integer)
                     except ValueError as e:
                         raise Error(str(e), text, pos) from None
                     pos = m.end()
