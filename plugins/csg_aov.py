@@ -6,7 +6,9 @@ import mitsuba as mi
 
 from .csg_common import SceneCSG
 
-AOV_TYPES = {"depth": 1, "position": 3, "sh_normal": 3, "prim_index": 1, "shape_index": 1}
+AOV_TYPES = {"depth": 1, "position": 3, "uv": 2, "dp_du": 3, "sh_normal": 3, "prim_index": 1, "shape_index": 1}
+# Channel suffixes as Mitsuba's own `aov` integrator names them.
+_SUFFIXES = {"uv": "UV", "dp_du": "XYZ", "position": "xyz", "sh_normal": "xyz"}
 
 
 class CSGAOVIntegrator(mi.SamplingIntegrator):
@@ -21,7 +23,7 @@ class CSGAOVIntegrator(mi.SamplingIntegrator):
      * - aovs
        - |string|
        - Comma-separated `name:type` list; types: `depth` (distance along the camera ray),
-         `position`, `sh_normal`, `prim_index` (index into the model's `leaves()`, or the
+         `position`, `uv`, `dp_du`, `sh_normal`, `prim_index` (index into the model's `leaves()`, or the
          mesh triangle), `shape_index` (index in `scene.shapes()`). Pixels with no hit are 0.
          (Default: `dd.y:depth,p:position,nn:sh_normal,prim:prim_index,shape:shape_index`)
      * - (Nested plugin)
@@ -56,7 +58,7 @@ class CSGAOVIntegrator(mi.SamplingIntegrator):
         names = []
         for name, kind in self.aovs:
             n = AOV_TYPES[kind]
-            names += [name] if n == 1 else [f"{name}.{c}" for c in "xyz"]
+            names += [name] if n == 1 else [f"{name}.{c}" for c in _SUFFIXES[kind]]
         return (self.inner.aov_names() if self.inner else []) + names
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
@@ -75,6 +77,10 @@ class CSGAOVIntegrator(mi.SamplingIntegrator):
                 out.append(dr.select(hit, si.t, 0.0))
             elif kind == "position":
                 out += [dr.select(hit, si.p[i], 0.0) for i in range(3)]
+            elif kind == "uv":
+                out += [dr.select(hit, si.uv[i], 0.0) for i in range(2)]
+            elif kind == "dp_du":
+                out += [dr.select(hit, si.dp_du[i], 0.0) for i in range(3)]
             elif kind == "sh_normal":
                 out += [dr.select(hit, si.sh_frame.n[i], 0.0) for i in range(3)]
             elif kind == "prim_index":

@@ -4,7 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_csg.engine.hit_geometry import attached_hit
+from mitsuba_csg.engine.hit_geometry import attached_hit, surface_coordinates
 from mitsuba_csg.queries import trace_rays
 
 
@@ -56,12 +56,22 @@ class SceneCSG:
                 t, p, n = attached_hit(shape.primitive_to_world, shape.prepared.tree, prim, mi.UInt32(hits.info),
                                        dr.select(closer, t, 0.0), ray.o, ray.d, closer)
                 t, p, n = mi.Float(t), mi.Point3f(p), mi.Normal3f(n)
+            uv, dp_du, dp_dv = surface_coordinates(shape.prepared.tree, hits.prim, hits.info,
+                                                   ray.o, ray.d, dr.detach(dr.select(closer, t, 0.0)), closer)
+            dp_du, dp_dv = mi.Vector3f(dp_du), mi.Vector3f(dp_dv)
             csg_si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray.d))
             csg_si.t = t
             csg_si.p = p
             csg_si.n = n
-            csg_si.sh_frame = mi.Frame3f(n)
-            csg_si.dp_du, csg_si.dp_dv = csg_si.sh_frame.s, csg_si.sh_frame.t
+            csg_si.uv = mi.Point2f(uv)
+            csg_si.dp_du, csg_si.dp_dv = dp_du, dp_dv
+            # The shading frame's tangent follows dp_du (Gram-Schmidt against n), as Mitsuba's
+            # shapes set it; where dp_du vanishes (a sphere's pole) any frame about n.
+            tangent = dp_du - n * dr.dot(n, dp_du)
+            usable = dr.squared_norm(tangent) > 1e-20 * dr.squared_norm(dp_du) + 1e-30
+            frame = mi.Frame3f(n)
+            s_axis = dr.select(usable, dr.normalize(tangent), frame.s)
+            csg_si.sh_frame = mi.Frame3f(s_axis, dr.cross(n, s_axis), n)
             csg_si.wi = csg_si.to_local(-ray.d)
             csg_si.prim_index = prim
             csg_si.shape = mi.ShapePtr(shape)

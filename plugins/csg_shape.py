@@ -50,6 +50,13 @@ class CSGShape(mi.Mesh):
     refuse unused ones, and a BSDF that matches no material once a default is chosen is
     reported as unused.
 
+    Hits carry texture coordinates and tangents, so bitmap textures, normal and bump maps and
+    anisotropic BSDFs work: spheres as Mitsuba's `sphere` (u = phi / 2 pi, v = theta / pi),
+    cylinder, cone and quadric sides as Mitsuba's `cylinder` (u = phi / 2 pi, v from 0 at the
+    bottom to 1 at the top), caps and box faces [0, 1] across each face, tori by their two
+    angles, convex faces by a frame in their plane, mesh triangles by barycentric coordinates;
+    the shading frame's tangent follows dp_du.
+
     `mi.traverse` exposes `primitive_to_world` (differentiable): 12 floats per primitive,
     in `model.leaves()` order, the rows of the 3x4 matrix that maps the primitive's
     canonical solid to world space. Its last column is the primitive's centre; its linear
