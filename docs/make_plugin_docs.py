@@ -62,7 +62,8 @@ def to_markdown(doc: str) -> str:
 def main():
     parts = ["# Mitsuba plugins", "",
              "Generated from the plugins' docstrings by `docs/make_plugin_docs.py`. `import mitsuba_csg` "
-             "registers them for the current variant (call `mitsuba_csg.register_plugins()` after switching).", ""]
+             "registers them for the current variant (call `mitsuba_csg.register_plugins()` after switching); every "
+             "JIT variant works, RGB, mono and spectral (`llvm_*` on any CPU, `cuda_*` on NVIDIA GPUs).", ""]
     for cls in (csg_shape.CSGShape, csg_path.CSGPathIntegrator, csg_aov.CSGAOVIntegrator, csg_prb.CSGPRBIntegrator):
         parts += [to_markdown(cls.__doc__), ""]
     (HERE / "plugins.md").write_text("\n".join(parts))
