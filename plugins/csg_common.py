@@ -20,6 +20,11 @@ class SceneCSG:
                 raise ValueError(f"the csg_* integrators do not trace participating media, and shape "
                                  f"{shape.id() or type(shape).__name__!r} has an interior or exterior medium; "
                                  f"render media with Mitsuba's volpath (on a mesh of the model)")
+        for sensor in scene.sensors():
+            if sensor.get_medium() is not None:
+                raise ValueError(f"the csg_* integrators do not trace participating media, and sensor "
+                                 f"{sensor.id() or type(sensor).__name__!r} sits in a medium; render media with "
+                                 f"Mitsuba's volpath (on a mesh of the model)")
         # Duck-typed: each Mitsuba variant has its own CSGShape class.
         self.csg = [s for s in shapes if getattr(s, "is_csg_proxy", False)]
         self.shape_index = {id(s): i for i, s in enumerate(shapes)}

@@ -389,6 +389,14 @@ def test_media_are_refused_not_ignored(integrator, capfd):
     # Mitsuba prints the integrator's own error and raises its render operation's failure
     shown = str(info.value) + str(info.value.__cause__) + capfd.readouterr().err
     assert "do not trace participating media, and shape 'fog_ball'" in shown, shown[-500:]
+    foggy_camera = mi.load_dict({"type": "scene", "integrator": {"type": integrator},
+                                 "sensor": {"type": "perspective", "id": "cam", "medium": {"type": "homogeneous"},
+                                            "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+                                 "model": {"type": "csg", "model": csg.model_ref(csg.Box(1.0))}})
+    with pytest.raises(Exception) as info:
+        mi.render(foggy_camera)
+    shown = str(info.value) + str(info.value.__cause__) + capfd.readouterr().err
+    assert "sensor 'cam' sits in a medium" in shown, shown[-500:]
 
 
 def _aov_image(shape: dict, integrator: dict, to_world=LOOK, size=(48, 32)):
