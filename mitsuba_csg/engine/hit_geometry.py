@@ -1,4 +1,5 @@
-"""Geometry of a found hit: its world normal, detached or differentiable.
+"""Geometry of a found hit: its world normal (detached or differentiable) and its surface
+coordinates (uv and tangents, detached).
 
 The automaton finds the winning primitive and face with detached arithmetic. `hit_normal`
 evaluates the face's surface gradient there; `attached_hit` recomputes t, position and
