@@ -91,8 +91,11 @@ def _broadcast_opaque(b, value: float, n: int):
     return dr.opaque(b.Float, value) + dr.zeros(b.Float, n)
 
 
-def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen: bool = False) -> RayHits:
+def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen: bool = False,
+               active=None) -> RayHits:
     """First hit of each ray o + t d, t in (tmin, tmax], on the CSG solid (Dr.Jit arrays).
+
+    `active` (a Bool per ray, optional) skips the lanes where it is false: they miss at no cost.
 
     `frozen=True` records the call's kernels with `dr.freeze` the first time a batch of this
     width (and these tmin, tmax numbers) is traced, and replays them afterwards without
@@ -101,6 +104,8 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen:
     or an integrator. Results are the same bit for bit.
     """
     if frozen:
+        if active is not None:
+            raise CSGError("trace_rays(frozen=True): an active mask is not supported; trace all lanes")
         return _replay(prepared, o, d, tmin, tmax)
     tree = prepared.tree
     b = tree.b
@@ -109,7 +114,8 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen:
     # Opaque: a literal would be compiled into the kernel, and every new value would recompile it.
     tmin = _broadcast_opaque(b, tmin, n) if isinstance(tmin, (int, float)) else b.Float(dr.detach(tmin))
     tmax = _broadcast_opaque(b, tmax, n) if isinstance(tmax, (int, float)) else b.Float(dr.detach(tmax))
-    t, leaf, info, finished, steps = traverse(tree, o, d, tmin, tmax)
+    active = True if active is None else b.Bool(dr.detach(active))
+    t, leaf, info, finished, steps = traverse(tree, o, d, tmin, tmax, active)
     hit = leaf != K.NO_LEAF
     _, prim, _, _ = node_record(b, tree, leaf, hit)
     normal = hit_normal(tree, prim, info, o, d, dr.select(hit, t, 0.0), hit)

@@ -50,7 +50,7 @@ class SceneCSG:
         csg_prim = mi.UInt32(0)
         csg_shape = mi.UInt32(0)
         for k, shape in enumerate(self.csg):
-            hits = trace_rays(shape.prepared, ray.o, ray.d, 0.0, dr.detach(dr.minimum(ray.maxt, si.t)))
+            hits = trace_rays(shape.prepared, ray.o, ray.d, 0.0, dr.detach(dr.minimum(ray.maxt, si.t)), active=active)
             closer = active & (hits.t < si.t) & dr.isfinite(hits.t)
             closer = mi.Bool(closer)
             t = mi.Float(hits.t)
@@ -93,7 +93,7 @@ class SceneCSG:
         """Shadow test of `ray` (up to ray.maxt) against Mitsuba's shapes and the CSG shapes."""
         blocked = scene.ray_test(ray, active) if self.has_others else mi.Bool(False)
         for shape in self.csg:
-            hits = trace_rays(shape.prepared, ray.o, ray.d, 0.0, dr.detach(ray.maxt))
+            hits = trace_rays(shape.prepared, ray.o, ray.d, 0.0, dr.detach(ray.maxt), active=active & ~blocked)
             blocked |= active & mi.Bool(dr.isfinite(hits.t))
         return blocked
 

@@ -455,3 +455,24 @@ def test_frozen_traces_replay_the_same_hits():
         assert all(replay.n_recordings == 1 for replay in prepared.replays.values())
     with pytest.raises(csg.CSGError, match="tmin and tmax must be numbers"):
         trace_rays(prepared, o, d, tmin=dr.zeros(b.Float, 77), frozen=True)
+
+
+def test_inactive_lanes_do_no_work_and_miss():
+    """`trace_rays(..., active=mask)`: the integrators pass their live lanes, so finished
+    paths and unneeded shadow rays cost nothing (a csg_path frame at max_depth 1 traced every
+    lane's unused shadow ray through the model: 1.30 s -> 0.41 s for Cheese-1000)."""
+    import drjit as dr
+    from mitsuba_csg.queries import rays_to_device, trace_rays
+    rng = np.random.default_rng(9)
+    prepared = csg.prepare(cheese(80, seed=3))
+    b = prepared.tree.b
+    n = 500
+    o = rays_to_device(np.column_stack([rng.uniform(-1.2, 1.2, (n, 2)), np.full(n, -5.0)]), b)
+    d = rays_to_device(np.tile([0.0, 0.0, 1.0], (n, 1)), b)
+    mask = rng.random(n) < 0.5
+    full = trace_rays(prepared, o, d)
+    part = trace_rays(prepared, o, d, active=b.Bool(mask))
+    t_full, t_part = np.asarray(full.t), np.asarray(part.t)
+    np.testing.assert_array_equal(t_part[mask], t_full[mask])
+    assert np.all(np.isinf(t_part[~mask])) and np.all(np.asarray(part.steps)[~mask] == 0)
+    assert np.all(np.asarray(part.prim)[~mask] == 0xFFFFFFFF) and np.isfinite(t_full[~mask]).any()

@@ -109,8 +109,12 @@ def _tie_tolerance(b, tree, o, d):
 
 
 @dr.syntax
-def traverse(tree: KernelTree, o, d, tmin, tmax):
-    """Run the automaton. Returns (t, leaf node, info, finished, steps) per lane, all detached."""
+def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
+    """Run the automaton. Returns (t, leaf node, info, finished, steps) per lane, all detached.
+
+    Lanes where `active` is false do no work and miss (an integrator's finished paths, or
+    shadow rays it does not need, would otherwise be traced in full).
+    """
     b = tree.b
     n = dr.width(o.x)
     o, d, k = scene_rays(tree, o, d)
@@ -139,7 +143,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax):
     bound = dr.alloc_local(b.Float, tree.stack_size)       #              the parent's t_bound
 
     # Rays that miss the root box are done before the loop starts.
-    state = dr.select(_box_hit(b, tree, node, o, inv_d, t_start, tmax, True), state, DONE)
+    state = dr.select(b.Bool(active) & _box_hit(b, tree, node, o, inv_d, t_start, tmax, True), state, DONE)
 
     # `sp < stack_size` never stops a lane (no tree descends deeper than its height), but it
     # puts the stack size into the kernel's IR: Dr.Jit 1.5 leaves the sizes of `alloc_local`
