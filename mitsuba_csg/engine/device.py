@@ -15,7 +15,7 @@ import numpy as np
 from . import layout as K
 from .backend import Backend, owned
 from .lowering import FlatTree
-from ..errors import ModelError, TreeTooDeepError
+from ..errors import TreeTooDeepError
 
 MAX_STACK = 1024        # deepest tree the per-lane stacks are allocated for
 
@@ -190,8 +190,6 @@ def _mesh_node_records(flat: FlatTree) -> tuple[np.ndarray, np.ndarray]:
     meshes)."""
     if flat.mesh_right is None or not len(flat.mesh_right):
         return np.zeros((1, K.MESH_NODE_FLOATS), np.float32), np.zeros(0, np.uint32)
-    if np.any(flat.mesh_first >= 1 << (31 - K.MESH_COUNT_BITS)):
-        raise ModelError("mesh: too many triangles for the kernel's triangle index (2^27 at most)")
     inner = flat.mesh_count == 0
     rank = np.cumsum(inner) - 1
     ref = np.where(inner, rank, K.mesh_leaf_ref(flat.mesh_first, flat.mesh_count)).astype(np.uint32)
