@@ -32,16 +32,25 @@ def _face_plane(m, planes, shape, plane_start, info, active):
     return face, dr.gather(m.Array4f, planes, plane_start + face, active & ((shape == K.CONVEX) | (shape == K.MESH)))
 
 
-def hit_normal(tree, prim, info, o, d, t, active):
-    """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`."""
+def _hit_in_primitive(tree, prim, info, o, d, t, active):
+    """The hit at o + t d in primitive `prim`'s canonical frame: (rows of scene -> canonical,
+    shape, params, plane start, canonical point, face, face plane, surface gradient there,
+    the ray's unit direction in the scene frame)."""
     b = tree.b
     rows, shape, param, plane_start, _ = gather_prim(b, tree, prim, active)
     o, d, k = scene_rays(tree, o, d)
     p = o + (t * k) * d
     p4 = b.Array4f(p.x, p.y, p.z, 1.0)
-    p_canonical = b.Array3f(dr.dot(rows[0], p4), dr.dot(rows[1], p4), dr.dot(rows[2], p4))
+    x = b.Array3f(dr.dot(rows[0], p4), dr.dot(rows[1], p4), dr.dot(rows[2], p4))
     face, plane = _face_plane(b.module, tree.planes, shape, plane_start, info, active)
-    _, n_local = surface_function(b.module, shape, face, param, plane, p_canonical)
+    _, grad = surface_function(b.module, shape, face, param, plane, x)
+    return rows, shape, param, plane_start, x, face, plane, grad, d
+
+
+def hit_normal(tree, prim, info, o, d, t, active):
+    """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`."""
+    b = tree.b
+    rows, _, _, _, _, _, _, n_local, d = _hit_in_primitive(tree, prim, info, o, d, t, active)
     n = _normal_to_world(b, rows, n_local)
     n = dr.select(K.info_flipped(info), -n, n) * dr.rsqrt(dr.squared_norm(n))
     # At a cone apex the surface has no normal: face the ray (outward for its hit class).
@@ -97,13 +106,7 @@ def surface_coordinates(tree, prim, info, o, d, t, active):
     """
     b = tree.b
     m = b.module
-    rows, shape, param, plane_start, _ = gather_prim(b, tree, prim, active)
-    o_s, d_s, k = scene_rays(tree, o, d)
-    p = o_s + (t * k) * d_s
-    p4 = b.Array4f(p.x, p.y, p.z, 1.0)
-    x = b.Array3f(dr.dot(rows[0], p4), dr.dot(rows[1], p4), dr.dot(rows[2], p4))
-    face, plane = _face_plane(m, tree.planes, shape, plane_start, info, active)
-    _, grad = surface_function(m, shape, face, param, plane, x)
+    rows, shape, param, plane_start, x, face, plane, grad, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
     zero = dr.zeros(b.Float, dr.width(x.x))
     two_pi, pi = 2.0 * dr.pi, dr.pi
 
