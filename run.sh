@@ -31,7 +31,7 @@ stamp="$venv/.installed-$(sha1sum pyproject.toml | cut -c1-12)"
 if [ ! -f "$stamp" ]; then
     echo "run.sh: installing Python packages into .venv" >&2
     "$venv/bin/python" -m pip install -q --upgrade pip >/dev/null
-    "$venv/bin/python" -m pip install -q -e ".[test,bench]"
+    "$venv/bin/python" -m pip install -q -e ".[test,bench,distributed]"
     rm -f "$venv"/.installed-*
     touch "$stamp"
 fi

@@ -76,7 +76,7 @@ def path_frames(model, mesh, width, height, repeats, directory) -> dict:
     import mitsuba as mi
 
     import mitsuba_csg as csg
-    from mitsuba_csg.cli import model_scene_dict
+    from mitsuba_csg.scene_setup import model_scene_dict
     csg_dict = model_scene_dict(mi, csg, model, width, height, 1, "csg_path")
     mesh_dict = model_scene_dict(mi, csg, model, width, height, 1, "path")
     ply = str(directory / "mesh.ply")

@@ -73,7 +73,7 @@ def path_frame(model, width, height, repeats) -> float:
     import mitsuba as mi
 
     import mitsuba_csg as csg
-    from mitsuba_csg.cli import model_scene_dict
+    from mitsuba_csg.scene_setup import model_scene_dict
     scene = mi.load_dict(model_scene_dict(mi, csg, model, width, height, 1, "csg_path"))
 
     def run():

@@ -7,7 +7,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from .formats import MODEL_SUFFIXES
+from . import scene_setup
 from .images import AOVS, DEFAULT_AOVS, channel_names, write_exr, write_png
 from .scenes import NAMED as BUILTIN_SCENES
 
@@ -24,6 +24,10 @@ def _size(text: str) -> tuple[int, int]:
         return w, h
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 640x360, got {text!r}") from None
+
+
+def _size_list(text: str) -> list[int]:
+    return list(_size(text))
 
 
 def _positive_int(text: str) -> int:
@@ -62,74 +66,6 @@ def _load_model(path: str, **options):
     return csg.load(p, **options)
 
 
-def _load_options(args, path: str) -> dict:
-    """Reader options from the command line: --skip-unsupported (GDML, OpenSCAD), --depth and
-    --world (GDML)."""
-    suffix = Path(path).suffix.lower()
-    options = {}
-    if getattr(args, "skip_unsupported", False):
-        if suffix not in (".gdml", ".csg", ".scad"):
-            raise CLIError(f"{path}: --skip-unsupported applies to GDML and OpenSCAD files")
-        options["on_unsupported"] = "skip"
-    gdml_only = {"depth": getattr(args, "depth", None), "show_world": getattr(args, "world", None) or None,
-                 "hide": getattr(args, "hide", None)}
-    if suffix != ".gdml" and any(v is not None for v in gdml_only.values()):
-        raise CLIError(f"{path}: --depth, --world and --hide apply to GDML detectors")
-    if suffix == ".gdml":
-        options.update({k: v for k, v in gdml_only.items() if k != "hide" and v is not None})
-    return options
-
-
-def demo_scene_dict(mi, csg, width, height, spp, integrator):
-    """The built-in demo: the paper's Cheese (a cube minus 500 spheres) on a floor."""
-    from .scenes import cheese
-    return model_scene_dict(mi, csg, cheese(500, seed=0), width, height, spp, integrator,
-                            colour=[0.85, 0.65, 0.25])
-
-
-def model_scene_dict(mi, csg, model, width, height, spp, integrator, colour=None):
-    """A model on a floor, framed by a camera, lit by a sky and a sun; each material in its colour
-    (`viewing.material_colour`), or all in `colour`."""
-    from . import viewing
-    default = viewing.bsdf((*colour, 1.0) if colour is not None else viewing.material_colour(None))
-    return scene_dict(mi, csg, [(model, {} if colour is not None else viewing.material_bsdfs(model), default)],
-                      width, height, spp, integrator)
-
-
-def scene_dict(mi, csg, parts, width, height, spp, integrator):
-    """Mitsuba's dict for csg shapes `parts` [(model, {material: bsdf}, default bsdf)] on a floor,
-    framed by a camera whose clip planes follow the scene's size (a 40 m detector in mm too)."""
-    import numpy as np
-
-    from .camera import framing
-    boxes = np.array([part[0].bounds() for part in parts])
-    lower, upper = boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)
-    origin, target = framing(lower, upper, 40.0, width / height)
-    size = float((upper - lower).max())
-    distance = float(np.linalg.norm(origin - target))
-    shapes = {}
-    for k, (model, bsdfs, default) in enumerate(parts):
-        shape = {"type": "csg", "model": csg.model_ref(model), "bsdf": default}
-        shape.update({name: value for name, value in bsdfs.items()})
-        shapes[f"model{k}" if k else "model"] = shape
-    return {
-        "type": "scene",
-        "integrator": {"type": integrator, "max_depth": 6} if integrator != "csg_aov" else {"type": "csg_aov"},
-        "sensor": {"type": "perspective", "fov": 40.0, "fov_axis": "x",
-                   "near_clip": 1e-4 * distance, "far_clip": distance + 10.0 * size,
-                   "to_world": mi.ScalarTransform4f().look_at(origin.tolist(), target.tolist(), [0, 0, 1]),
-                   "film": {"type": "hdrfilm", "width": width, "height": height},
-                   "sampler": {"type": "independent", "sample_count": spp}},
-        **shapes,
-        "floor": {"type": "rectangle",
-                  "to_world": mi.ScalarTransform4f().translate([float(target[0]), float(target[1]), float(lower[2])])
-                  .scale(4.0 * size),
-                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.55]}}},
-        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.35, 0.4, 0.5]}},
-        "sun": {"type": "directional", "direction": [-1.0, 1.2, -2.0], "irradiance": {"type": "rgb", "value": [3.0, 2.8, 2.5]}},
-    }
-
-
 def _render(args) -> int:
     mi, csg = _set_variant(args.variant)
     import drjit as dr
@@ -140,30 +76,9 @@ def _render(args) -> int:
     if out.suffix.lower() != ".exr":
         raise CLIError(f"{out}: the output is an OpenEXR file (.exr); add --png for a preview")
     _check_writable(out)
-    if args.input is None:
-        scene = mi.load_dict(demo_scene_dict(mi, csg, width, height, args.spp, integrator))
-        what = "the built-in Cheese (500 holes)"
-    elif args.input.lower().endswith(".xml"):
-        if not Path(args.input).exists():
-            raise CLIError(f"{args.input}: no such file")
-        # Mitsuba refuses parameters a scene does not use: pass those it names ($spp ...).
-        text = Path(args.input).read_text(errors="replace")
-        params = {k: v for k, v in (("spp", args.spp), ("width", width), ("height", height)) if f"${k}" in text}
-        try:
-            scene = mi.load_file(args.input, **params)
-        except Exception as e:                               # Mitsuba's parser errors
-            raise CLIError(f"{args.input}: {_mitsuba_reason(str(e))}") from e
-        what = args.input
-    elif args.input.lower().endswith(MODEL_SUFFIXES):
-        scene = mi.load_dict(scene_dict(mi, csg, _model_parts(args), width, height, args.spp, integrator))
-        what = args.input
-    elif args.input in BUILTIN_SCENES:
-        model = BUILTIN_SCENES[args.input]()
-        scene = mi.load_dict(model_scene_dict(mi, csg, model, width, height, args.spp, integrator))
-        what = f"the built-in {args.input}"
-    else:
-        raise CLIError(f"{args.input}: expected a Mitsuba scene (.xml), a model ({', '.join(MODEL_SUFFIXES)}) "
-                       f"or a built-in scene ({', '.join(BUILTIN_SCENES)})")
+    scene, what = scene_setup.load_scene(
+        mi, csg, args.input, width, height, args.spp, integrator, cuts=args.cut, hide=args.hide,
+        skip_unsupported=args.skip_unsupported, depth=args.depth, world=args.world, size_given=False)
     # --aov: the scene's own integrator gives the colour, csg_aov adds the buffers as layers.
     render_with = scene.integrator()
     if args.aov is not None:
@@ -204,29 +119,6 @@ def _check_writable(out: Path) -> None:
         raise CLIError(f"{out}: cannot write there ({e.strerror or e})") from None
     if out.is_dir():
         raise CLIError(f"{out}: is a directory")
-
-
-def _mitsuba_reason(message: str) -> str:
-    """Mitsuba's error without the Python traceback it embeds for a failing Python plugin: its
-    place (file, line, plugin) and the exception's own last line, which says why."""
-    lines = [line for line in message.splitlines() if line.strip()]
-    if len(lines) > 1 and "Traceback (most recent call last)" in lines[0]:
-        head = lines[0].split("Traceback (most recent call last)")[0].rstrip(": ")
-        return f"{head}: {lines[-1].strip()}"
-    return lines[0] if lines else message
-
-
-def _model_parts(args):
-    """The csg shapes of a model file (`viewing.model_parts`), with the command line's options."""
-    from . import viewing
-    if not Path(args.input).exists():
-        raise CLIError(f"{args.input}: no such file")
-    cuts = [viewing.parse_cut(c) for c in (args.cut or [])]
-    return viewing.model_parts(args.input, cuts, _names(args.hide), **_load_options(args, args.input))
-
-
-def _names(text):
-    return [n.strip() for n in (text or "").split(",") if n.strip()]
 
 
 def _aov_list(text: str) -> tuple[str, ...]:
@@ -317,7 +209,51 @@ def _bench(args) -> int:
     return 0
 
 
-COMMANDS = ("render", "info", "convert", "bench")
+def _batch(args) -> int:
+    _set_variant(args.variant)
+    from . import batch
+    single = {"output": args.output, "spp": args.spp, "chunk_spp": args.chunk_spp, "size": args.size,
+              "seed": args.seed, "integrator": args.integrator}
+    given = {k: v for k, v in single.items() if v is not None}
+    if args.no_png:
+        given["png"] = False
+    if args.input is not None and batch.is_job_file(args.input):
+        if given:
+            raise CLIError(f"{args.input}: a job file sets {', '.join(sorted(given))} itself "
+                           "(per job, or for all in its \"defaults\")")
+        jobs = batch.load_jobs(args.input, args.frames)
+    else:
+        given.setdefault("output", "turntable.exr" if args.frames else "batch.exr")
+        if args.input is not None:
+            given["input"] = args.input
+        jobs = batch.parse_jobs({"jobs": [given]}, Path.cwd(), "command line", args.frames)
+    if args.local and args.address:
+        raise CLIError("--local and --address exclude each other")
+    try:
+        summary = batch.run(jobs, workers=args.workers, threads=args.threads, address=args.address,
+                            use_ray=False if args.local else None)
+    except KeyboardInterrupt:
+        print("mitsuba-csg: interrupted; finished chunks are saved, rerun the same command to resume",
+              file=sys.stderr)
+        return 130
+    _print_summary(summary)
+    if summary.failed:
+        print(f"mitsuba-csg: error: {len(summary.failed)} of {len(summary.results)} jobs failed", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _print_summary(summary) -> None:
+    width = max(len(r.job.name) for r in summary.results)
+    print(f"{len(summary.results)} jobs in {summary.seconds:.1f} s ({summary.backend}, {summary.workers} "
+          f"worker{'s' if summary.workers != 1 else ''})")
+    for r in summary.results:
+        chunks = f"{r.chunks_rendered} rendered, {r.chunks_reused} reused"
+        where = ", ".join(str(p) for p in r.outputs) if r.status != "failed" else r.error
+        print(f"  {r.job.name:<{width}}  {r.status:<12}  {chunks:<24}  {where}")
+
+
+COMMANDS = ("render", "info", "convert", "bench", "batch")
 
 
 def _global_options(p: argparse.ArgumentParser, default) -> None:
@@ -365,6 +301,28 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--size", type=_size, default=(1280, 720))
     b.add_argument("--repeats", type=_positive_int, default=3)
     b.add_argument("--no-optimize", action="store_true")
+    a = sub.add_parser("batch", parents=[common],
+                       help="render many images (a job file, or a turntable) in sample chunks, on Ray or here")
+    a.add_argument("input", nargs="?", help="a job file (JSON with \"jobs\", see docs/batch.md), or one scene, model "
+                   "or built-in scene as for render (none: the demo Cheese)")
+    a.add_argument("--frames", type=_positive_int, default=None,
+                   help="a turntable: each job as N frames, the camera circling the scene (outputs NAME_0000.exr ...)")
+    a.add_argument("-o", "--output", default=None, help="output .exr of a single input (default batch.exr, "
+                   "or turntable.exr with --frames)")
+    a.add_argument("--spp", type=_positive_int, default=None, help="samples per pixel (default 16)")
+    a.add_argument("--chunk-spp", type=_positive_int, default=None, help="samples per chunk (default 8)")
+    a.add_argument("--size", type=_size_list, default=None, help="WIDTHxHEIGHT (default 640x360; "
+                   "an .xml scene: its own)")
+    a.add_argument("--seed", type=int, default=None, help="seed of the job's chunk seeds (default 0)")
+    a.add_argument("--integrator", default=None, choices=["csg_path", "csg_aov", "csg_prb"])
+    a.add_argument("--no-png", action="store_true", help="write only the .exr images")
+    a.add_argument("--workers", type=_positive_int, default=None,
+                   help="Ray workers (default: the cluster's CPUs / --threads)")
+    a.add_argument("--threads", type=_positive_int, default=None, help="Dr.Jit threads per Ray worker (default 1), or of this process with --local "
+                   "(default: all; one thread renders bit for bit alike run to run)")
+    a.add_argument("--address", default=None, help="join this Ray cluster (e.g. auto, or ray://host:10001) instead "
+                   "of starting a local one")
+    a.add_argument("--local", action="store_true", help="render in this process, without Ray")
     return p
 
 
@@ -374,7 +332,7 @@ def main(argv=None) -> int:
     if not any(a in (*COMMANDS, "-h", "--help") for a in argv):
         argv = ["render", *argv]          # `mitsuba-csg scene.xml`: render is implied
     args = p.parse_args(argv)
-    handlers = {"render": _render, "info": _info, "convert": _convert, "bench": _bench}
+    handlers = {"render": _render, "info": _info, "convert": _convert, "bench": _bench, "batch": _batch}
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:

@@ -142,7 +142,7 @@ def mother_bsdf() -> dict:
 
 def model_parts(path, cuts=(), hide=(), **load_options) -> list:
     """The csg shapes a model file is shown with: [(model, {material: bsdf dict}, default bsdf
-    dict)] for `cli.scene_dict`. A GDML detector gives its see-through mothers and its solid
+    dict)] for `scene_setup.scene_dict`. A GDML detector gives its see-through mothers and its solid
     volumes (`DetectorView`), anything else one shape; `cuts` are `parse_cut` triples."""
     from pathlib import Path
     from .formats import load
