@@ -17,7 +17,7 @@ def register() -> None:
     variant = mi.variant()
     if variant in _registered_for:
         return
-    from . import csg_aov, csg_common, csg_path, csg_shape
+    from . import csg_aov, csg_common, csg_path, csg_shape, integrator_guard
     modules = [csg_shape, csg_common, csg_path, csg_aov]
     if _modules_variant and _modules_variant[-1] != variant:
         modules = [importlib.reload(m) for m in modules]
@@ -32,4 +32,5 @@ def register() -> None:
             csg_prb = importlib.reload(csg_prb)
         prb_cls = csg_prb.CSGPRBIntegrator
         mi.register_integrator("csg_prb", lambda props: prb_cls(props))
+    integrator_guard.install(mi)
     _registered_for.add(variant)

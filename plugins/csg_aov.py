@@ -37,6 +37,9 @@ class CSGAOVIntegrator(mi.SamplingIntegrator):
         'integrator': {'type': 'csg_aov', 'aovs': 'dd.y:depth,nn:sh_normal'}
     """
 
+    # Traces csg shapes (plugins/integrator_guard.py refuses integrators without this).
+    traces_csg = True
+
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         spec = props.get("aovs", "dd.y:depth,p:position,nn:sh_normal,prim:prim_index,shape:shape_index")

@@ -7,6 +7,8 @@ import mitsuba as mi
 from mitsuba_csg.engine.hit_geometry import attached_hit, surface_coordinates
 from mitsuba_csg.queries import trace_rays
 
+from . import integrator_guard
+
 
 class SceneCSG:
     """The CSG shapes of a scene and whether anything else (meshes, spheres, ...) is in it."""
@@ -26,7 +28,7 @@ class SceneCSG:
                                  f"{sensor.id() or type(sensor).__name__!r} sits in a medium; render media with "
                                  f"Mitsuba's volpath (on a mesh of the model)")
         # Duck-typed: each Mitsuba variant has its own CSGShape class.
-        self.csg = [s for s in shapes if getattr(s, "is_csg_proxy", False)]
+        self.csg = integrator_guard.csg_shapes(scene)
         self.shape_index = {id(s): i for i, s in enumerate(shapes)}
         # Embree costs tens of ms per frame even for tiny scenes: skip it if all is CSG.
         self.has_others = len(self.csg) < len(shapes)

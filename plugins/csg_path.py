@@ -40,6 +40,9 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
         'integrator': {'type': 'csg_path', 'max_depth': 8}
     """
 
+    # Traces csg shapes (plugins/integrator_guard.py refuses integrators without this).
+    traces_csg = True
+
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.max_depth, self.rr_depth = read_depths(props, "csg_path")

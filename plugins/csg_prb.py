@@ -43,6 +43,9 @@ class CSGPRBIntegrator(RBIntegrator):
         'integrator': {'type': 'csg_prb', 'max_depth': 4}
     """
 
+    # Traces csg shapes (plugins/integrator_guard.py refuses integrators without this).
+    traces_csg = True
+
     def __init__(self, props: mi.Properties):
         check_depth_types(props, "csg_prb")
         super().__init__(props)

@@ -43,12 +43,17 @@ class CSGShape(mi.Mesh):
        - The default BSDF. BSDFs with an `id` equal to a material name used by the model are
          used for the primitives of that material. (Default: diffuse)
 
-    An exact CSG solid, traced analytically by the `csg_*` integrators: the ordinary Mitsuba
-    integrators do not see it (it is a proxy mesh with one degenerate triangle spanning the
-    model's bounding box, which keeps scene bounds right). It cannot be an area emitter, hold
-    other shapes or media; any other property is refused by name, as Mitsuba's own plugins
-    refuse unused ones, and a BSDF that matches no material once a default is chosen is
-    reported as unused.
+    An exact CSG solid, traced analytically by the `csg_*` integrators. Mitsuba's own
+    integrators (`path`, `volpath`, `prb_projective`, `aov`, ...) trace only Mitsuba's
+    shapes (to them this is a proxy mesh with one degenerate triangle spanning the model's
+    bounding box, which keeps scene bounds right), so rendering a scene that holds a `csg`
+    shape with one of them raises an error naming the integrator and the shape rather than
+    rendering the scene without the model; render a mesh of the model
+    (`mitsuba_csg.to_mesh`) where they are needed. It cannot be an area emitter, hold other
+    shapes or media, or sit in a `shapegroup` (instancing: refused, the group's own
+    acceleration structure would not see it); any other property is refused by name, as
+    Mitsuba's own plugins refuse unused ones, and a BSDF that matches no material once a
+    default is chosen is reported as unused.
 
     Hits carry texture coordinates and tangents, so bitmap textures, normal and bump maps and
     anisotropic BSDFs work: spheres as Mitsuba's `sphere` (u = phi / 2 pi, v = theta / pi),

@@ -469,3 +469,54 @@ def test_textures_and_anisotropy_on_a_csg_sphere_match_mitsubas_sphere():
         ours = image({"type": "csg", "model": csg.model_ref(csg.Sphere(1.2)), "bsdf": bsdf}, "csg_path", 16, 2)
         mse = lambda a: float(np.mean((a - reference) ** 2) / np.mean(reference ** 2))
         assert mse(ours) < 1.5 * mse(theirs) + 1e-4, (bsdf["type"], mse(ours), mse(theirs))
+
+
+# Every integrator Mitsuba 3.9 ships for the RGB variants (stokes needs a polarized variant).
+MITSUBA_INTEGRATORS = {
+    "path": {}, "direct": {}, "volpath": {}, "volpathmis": {}, "prbvolpath": {}, "prb": {}, "prb_basic": {},
+    "prb_projective": {}, "direct_projective": {}, "ptracer": {}, "depth": {}, "aov": {"aovs": "dd:depth"},
+    "moment": {"nested": {"type": "path"}}, "volprim_rf_basic": {},
+}
+
+
+@pytest.mark.parametrize("name", sorted(MITSUBA_INTEGRATORS))
+def test_mitsubas_own_integrators_refuse_a_scene_with_csg(name):
+    """Mitsuba's integrators trace only Mitsuba's shapes: on the example scene each raises an
+    error naming the csg shape (through mi.render and through the integrator's own render),
+    instead of an image without the Cheese."""
+    scene = mi.load_file(str(ROOT / "scenes" / "cheese.xml"), width=16, height=12, spp=1)
+    integrator = mi.load_dict({"type": name, **MITSUBA_INTEGRATORS[name]})
+    with pytest.raises(csg.CSGError, match="cannot see the csg shape 'cheese_model'.*Use csg_path"):
+        mi.render(scene, integrator=integrator)
+    with pytest.raises(csg.CSGError, match="cannot see the csg shape 'cheese_model'"):
+        integrator.render(scene, scene.sensors()[0])
+
+
+def test_the_csg_integrators_render_the_example_scene_with_its_model():
+    scene = mi.load_file(str(ROOT / "scenes" / "cheese.xml"), width=32, height=18, spp=2)
+    shapes = [s.id() for s in scene.shapes()]
+    centre = mi.render(scene, integrator=mi.load_dict({"type": "csg_aov", "aovs": "s:shape_index"}))
+    assert shapes[int(np.array(centre)[9, 16, -1])] == "cheese_model"      # the model is where the camera looks
+    for name in ("csg_path", "csg_prb"):
+        image = np.array(mi.render(scene, integrator=mi.load_dict({"type": name})))
+        assert np.isfinite(image).all() and image.mean() > 0.05
+
+
+def test_a_nested_integrator_that_cannot_see_csg_is_refused():
+    scene = mi.load_file(str(ROOT / "scenes" / "cheese.xml"), width=8, height=6, spp=1)
+    aov = mi.load_dict({"type": "csg_aov", "aovs": "d:depth", "inner": {"type": "path"}})
+    with pytest.raises(csg.CSGError, match="nested PathIntegrator integrator cannot see"):
+        mi.render(scene, integrator=aov)
+
+
+@pytest.mark.parametrize("integrator, message", [("csg_path", "csg shape 'ball' sits in a shapegroup"),
+                                                 ("path", "cannot see the csg shape 'ball'")])
+def test_instancing_a_csg_shape_is_refused(integrator, message):
+    """A shape group builds its own acceleration structure of Mitsuba's shapes: its csg copies
+    rendered nothing."""
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": integrator},
+                          "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+                          "group": {"type": "shapegroup", "ball": {"type": "csg", "model": csg.model_ref(MODEL)}},
+                          "copy": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"}}})
+    with pytest.raises(csg.CSGError, match=message):
+        mi.render(scene)

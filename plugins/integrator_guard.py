@@ -1,0 +1,128 @@
+"""Mitsuba's own integrators cannot see `csg` shapes: refuse them by name instead of rendering
+the scene without the model.
+
+Mitsuba 3.9 traces its own shape types only (Embree or OptiX); a `csg` shape is a proxy mesh
+with one degenerate triangle that nothing hits, traced by the `csg_*` integrators. `path`,
+`prb_projective`, `aov` and the rest would render every other shape and leave the model out,
+a plausible and wrong image. `install` wraps the render entry points of Mitsuba's integrator
+base classes (`Integrator.render`, the forward and backward passes, the Python `ADIntegrator`
+ones) with `check`, so `mi.render(scene)` and `integrator.render(scene, sensor)` alike raise an
+error that names the integrator, the shapes and what to use instead.
+
+Integrators that trace CSG declare it with a class attribute `traces_csg = True`; one that
+nests another (`csg_aov`'s colour) is checked for its nested integrator too. A `csg` shape in
+a shape group (instancing) is refused for every integrator: the group's own acceleration
+structure holds Mitsuba's shapes only, so its copies would be invisible.
+"""
+from __future__ import annotations
+
+import functools
+
+from mitsuba_csg.errors import CSGError
+
+CSG_INTEGRATORS = "csg_path (path tracing), csg_prb (differentiable) or csg_aov (buffers)"
+
+
+_BOUND_BASES = {"Integrator", "SamplingIntegrator", "MonteCarloIntegrator", "AdjointIntegrator", "Shape", "Mesh"}
+
+
+def _name(obj) -> str:
+    """The class a user would recognise: a Python plugin's own, else the C++ class's name."""
+    name = type(obj).__name__
+    if name in _BOUND_BASES:
+        try:
+            return obj.class_name()
+        except Exception:
+            pass
+    return name
+
+
+def csg_shapes(scene) -> list:
+    """The scene's `csg` shapes (top-level ones; `grouped_csg_shapes` finds the others)."""
+    return [s for s in scene.shapes() if getattr(s, "is_csg_proxy", False)]
+
+
+def grouped_csg_shapes(mi, scene) -> list:
+    """`csg` shapes inside shape groups (instancing), found through `mi.traverse`, which walks
+    the whole scene graph. Only scenes with instances are walked."""
+    if not any(_name(s) == "Instance" for s in scene.shapes()):
+        return []
+    top = {id(s) for s in scene.shapes()}
+    found, seen = [], set()
+    for entry in mi.traverse(scene).properties.values():
+        node = entry[2]
+        if getattr(node, "is_csg_proxy", False) and id(node) not in top and id(node) not in seen:
+            seen.add(id(node))
+            found.append(node)
+    return found
+
+
+def describe(shapes) -> str:
+    names = [s.id() or "(no id)" for s in shapes]
+    shown = ", ".join(repr(n) for n in names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+    return f"csg shape{'s' if len(names) > 1 else ''} {shown}"
+
+
+def check(mi, integrator, scene) -> None:
+    """Raise if `integrator` would render `scene` without its csg shapes."""
+    if scene is None:
+        return
+    if getattr(integrator, "traces_csg", False):
+        grouped = grouped_csg_shapes(mi, scene)
+        if grouped:
+            # A shape group builds its own acceleration structure, of Mitsuba's shapes only.
+            raise CSGError(f"the {describe(grouped)} sit{'s' if len(grouped) == 1 else ''} in a shapegroup: csg "
+                           f"shapes cannot be instanced; give each copy its own csg shape (with its to_world), "
+                           f"or make one csg shape of the union of the copies")
+        inner = getattr(integrator, "inner", None)
+        if inner is None or getattr(inner, "traces_csg", False):
+            return
+        shapes = csg_shapes(scene)
+        if shapes:
+            raise CSGError(f"{_name(integrator)}: its nested {_name(inner)} integrator cannot see the "
+                           f"{describe(shapes)} (Mitsuba's own integrators trace only Mitsuba's shapes), so the "
+                           f"colour would lack the model; nest {CSG_INTEGRATORS.split(' (')[0]} instead")
+        return
+    shapes = csg_shapes(scene) + grouped_csg_shapes(mi, scene)
+    if shapes:
+        raise CSGError(f"the {_name(integrator)} integrator cannot see the {describe(shapes)}: Mitsuba's own "
+                       f"integrators trace only Mitsuba's shapes and would render the scene without the model. "
+                       f"Use {CSG_INTEGRATORS}, or render a mesh of the model (mitsuba_csg.to_mesh) with "
+                       f"{_name(integrator)}")
+
+
+def _guarded(mi, method):
+    @functools.wraps(method)
+    def render(self, scene, *args, **kwargs):
+        check(mi, self, scene)
+        return method(self, scene, *args, **kwargs)
+    render._csg_guard = True
+    return render
+
+
+def _guarded_render_function(mi, render):
+    """`mi.render`, checked before Dr.Jit's custom operation (which would replace our error by
+    its own 'error while performing a custom differentiable operation')."""
+    @functools.wraps(render)
+    def guarded(scene, params=None, sensor=0, integrator=None, *args, **kwargs):
+        check(mi, integrator if integrator is not None else scene.integrator(), scene)
+        return render(scene, params, sensor, integrator, *args, **kwargs)
+    guarded._csg_guard = True
+    return guarded
+
+
+def install(mi) -> None:
+    """Wrap `mi.render` and the render entry points of the current variant's integrator classes
+    (once each)."""
+    import mitsuba
+    if not getattr(mitsuba.render, "_csg_guard", False):
+        mitsuba.render = _guarded_render_function(mitsuba, mitsuba.render)
+    from mitsuba.ad.integrators.common import ADIntegrator
+    targets = [(mi.Integrator, "render"), (mi.SamplingIntegrator, "render_forward"),
+               (mi.SamplingIntegrator, "render_backward"), (ADIntegrator, "render"),
+               (ADIntegrator, "render_forward"), (ADIntegrator, "render_backward")]
+    for cls, name in targets:
+        method = cls.__dict__.get(name)
+        if method is None or getattr(method, "_csg_guard", False):
+            continue
+        setattr(cls, name, _guarded(mi, method))
