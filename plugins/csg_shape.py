@@ -62,13 +62,42 @@ class CSGShape(mi.Mesh):
     angles, convex faces by a frame in their plane, mesh triangles by barycentric coordinates;
     the shading frame's tangent follows dp_du.
 
-    `mi.traverse` exposes `primitive_to_world` (differentiable): 12 floats per primitive,
-    in `model.leaves()` order, the rows of the 3x4 matrix that maps the primitive's
-    canonical solid to world space. Its last column is the primitive's centre; its linear
-    part holds the sizes: a `Sphere(r)` has `r * R` (R a rotation), a `Box(size)` has
-    `R * diag(size) / 2`, a `Cylinder(r, h)` has `R * diag(r, r, h / 2)`. After
-    `params.update()` the tree's boxes and kernel arrays are re-derived (the tree itself is
-    kept). `csg_prb` differentiates through it.
+    `mi.traverse` exposes, all differentiable (`csg_prb` differentiates through them):
+
+    - `primitive_translation`: 3 floats per primitive, in `model.leaves()` order: its centre
+      in the model's frame;
+    - `primitive_rotation`: 3 floats per primitive, a rotation vector (axis times angle, in
+      radians) turning it about its centre, relative to its loaded orientation (0 at load);
+    - `primitive_scale`: 1 float per primitive, a uniform scale about its centre relative to
+      its loaded size (1 at load): a `Sphere(r)`'s radius is `r * scale`;
+    - `to_world`: the placement of the whole model, as Mitsuba's own shapes have it;
+    - `primitive_to_world`: 12 floats per primitive, the rows of the 3x4 matrix that maps the
+      primitive's canonical solid to world space, composed from the above as
+      `to_world . [R(rotation) . scale . L | translation]` (L the loaded linear part). Its
+      linear part holds the sizes: a `Sphere(r)` has `r * R`, a `Box(size)` has
+      `R * diag(size) / 2`, a `Cylinder(r, h)` has `R * diag(r, r, h / 2)`, so writing it
+      directly changes sizes per axis; such a write becomes the new base of the named
+      parameters (translation = the centres, rotation 0, scale 1). One update may change
+      either the matrices or the named parameters.
+
+    After `params.update()` the tree's boxes and kernel arrays are re-derived (the tree
+    itself is kept). To recover a hole's position and radius:
+
+    .. code-block:: python
+
+        params = mi.traverse(scene)
+        opt = mi.ad.Adam(lr=0.02)
+        opt['t'] = params['cheese.primitive_translation']
+        opt['s'] = params['cheese.primitive_scale']
+        for it in range(100):
+            params['cheese.primitive_translation'] = opt['t']
+            params['cheese.primitive_scale'] = opt['s']
+            params.update()
+            image = mi.render(scene, params, spp=16, seed=it)     # with csg_prb
+            dr.backward(dr.mean(dr.square(image - target), axis=None))
+            opt.step()
+
+    Placing the model:
 
     .. code-block:: python
 
@@ -124,6 +153,12 @@ class CSGShape(mi.Mesh):
         self.prepared = prepare(model, optimize=self.optimize)
         flat = self.prepared.flat
         self.primitive_to_world = mi.Float(flat.prim_to_world[:, :3, :].astype(np.float32).ravel())
+        # Named, differentiable parameters (parameters_changed composes primitive_to_world from them).
+        self.to_world = mi.Transform4f(matrix.tolist())
+        self.primitive_translation = mi.Float(np.zeros(3 * flat.num_prims, np.float32))
+        self.primitive_rotation = mi.Float(np.zeros(3 * flat.num_prims, np.float32))
+        self.primitive_scale = mi.Float(np.ones(flat.num_prims, np.float32))
+        self._rebase(flat.prim_to_world[:, :3, :], matrix)
         super().__init__(f"csg:{source}", 2, 1, props)
         self._setup_materials(bsdfs)
         self._update_proxy_bounds()
@@ -148,26 +183,91 @@ class CSGShape(mi.Mesh):
             super().traverse(callback)
             return
         callback.put("primitive_to_world", self.primitive_to_world, mi.ParamFlags.Differentiable)
+        for name in _NAMED_PARAMETERS:
+            callback.put(name, getattr(self, name), mi.ParamFlags.Differentiable)
         for name, bsdf in self.material_bsdfs.items():
             callback.put(f"material_{name}", bsdf, mi.ParamFlags.Differentiable)
 
     def parameters_changed(self, keys):
+        named = [k for k in keys if k in _NAMED_PARAMETERS]
+        if "primitive_to_world" in keys and named:
+            raise CSGError(f"csg shape: primitive_to_world and {', '.join(named)} changed in one update; "
+                           "set either the matrices or the named parameters")
         if "primitive_to_world" in keys:
-            rows = np.array(dr.detach(self.primitive_to_world), dtype=np.float64).reshape(-1, 3, 4)
-            flat = self.prepared.flat
-            if len(rows) != flat.num_prims:
-                raise CSGError(f"csg shape: primitive_to_world needs {12 * flat.num_prims} values, got {12 * len(rows)}")
-            to_world = flat.prim_to_world.copy()
-            to_world[:, :3, :] = rows
-            dets = np.linalg.det(to_world[:, :3, :3])
-            if not np.all(np.isfinite(rows)) or np.any(np.abs(dets) < 1e-30):
-                raise CSGError("csg shape: primitive_to_world has NaN or singular matrices")
-            flat = with_primitive_transforms(flat, to_world)
-            self.prepared = Prepared(flat, upload(flat, self.prepared.tree.b))
-            super().parameters_changed([])
-            self._update_proxy_bounds()
+            rows = self._checked_rows(self.primitive_to_world)
+            self._rebase(rows, np.array(self.to_world.matrix, np.float64)[..., 0])
+        elif named:
+            self._check_named()
+            mi.set_property(self.primitive_to_world, self._compose())
+            rows = self._checked_rows(self.primitive_to_world)
         else:
             super().parameters_changed(keys)
+            return
+        flat = self.prepared.flat
+        to_world = flat.prim_to_world.copy()
+        to_world[:, :3, :] = rows
+        flat = with_primitive_transforms(flat, to_world)
+        self.prepared = Prepared(flat, upload(flat, self.prepared.tree.b))
+        super().parameters_changed([])
+        self._update_proxy_bounds()
+
+    def _checked_rows(self, values) -> np.ndarray:
+        rows = np.array(dr.detach(values), dtype=np.float64)
+        count = self.prepared.flat.num_prims
+        if rows.size != 12 * count:
+            raise CSGError(f"csg shape: primitive_to_world needs {12 * count} values, got {rows.size}")
+        rows = rows.reshape(-1, 3, 4)
+        dets = np.linalg.det(rows[:, :, :3])
+        if not np.all(np.isfinite(rows)) or np.any(np.abs(dets) < 1e-30):
+            raise CSGError("csg shape: primitive_to_world has NaN or singular matrices")
+        return rows
+
+    def _check_named(self):
+        count = self.prepared.flat.num_prims
+        for name, per in (("primitive_translation", 3), ("primitive_rotation", 3), ("primitive_scale", 1)):
+            values = np.array(dr.detach(getattr(self, name)), dtype=np.float64)
+            if values.size != per * count:
+                raise CSGError(f"csg shape: {name} needs {per * count} values ({per} per primitive), got {values.size}")
+            if not np.all(np.isfinite(values)):
+                raise CSGError(f"csg shape: {name} has NaN or infinite values")
+        scale = np.array(dr.detach(self.primitive_scale), dtype=np.float64)
+        if np.any(scale <= 0):
+            raise CSGError(f"csg shape: primitive_scale must be positive (primitive {int(np.argmin(scale))} has "
+                           f"{scale.min():g})")
+        matrix = np.array(dr.detach(self.to_world.matrix), np.float64)[..., 0]
+        if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix[:3, :3])) < 1e-30:
+            raise CSGError("csg shape: to_world has NaN or is singular")
+
+    def _rebase(self, rows: np.ndarray, to_world: np.ndarray):
+        """Make (P, 3, 4) world matrices the base of the named parameters: translation = each
+        primitive's centre in the model's frame, rotation 0, scale 1."""
+        inverse = np.linalg.inv(to_world)
+        linear = np.einsum("ij,pjk->pik", inverse[:3, :3], rows[:, :, :3])
+        centre = np.einsum("ij,pj->pi", inverse[:3, :3], rows[:, :, 3]) + inverse[:3, 3]
+        self._base_linear = linear
+        mi.set_property(self.primitive_translation, mi.Float(centre.astype(np.float32).ravel()))
+        mi.set_property(self.primitive_rotation, dr.zeros(mi.Float, 3 * len(rows)))
+        mi.set_property(self.primitive_scale, dr.ones(mi.Float, len(rows)))
+
+    def _compose(self):
+        """primitive_to_world = to_world . [R(rotation) . scale . base linear | translation],
+        per primitive, with Dr.Jit's AD: gradients reach the named parameters through it."""
+        count = len(self._base_linear)
+        t = dr.unravel(mi.Point3f, self.primitive_translation)
+        rotation = _rotation_matrix(dr.unravel(mi.Vector3f, self.primitive_rotation))
+        base = mi.Matrix3f(*[mi.Float(self._base_linear[:, i, j].astype(np.float32))
+                             for i in range(3) for j in range(3)])
+        linear = (rotation @ base) * self.primitive_scale
+        outer = self.to_world
+        world_linear = mi.Matrix3f(outer.matrix) @ linear
+        world_t = outer @ t
+        rows = dr.zeros(mi.Float, 12 * count)
+        base_index = dr.arange(mi.UInt32, count) * 12
+        for i in range(3):
+            for j in range(3):
+                dr.scatter(rows, world_linear[i][j], base_index + 4 * i + j)
+            dr.scatter(rows, world_t[i], base_index + 4 * i + 3)
+        return rows
 
     def _setup_materials(self, bsdfs: dict):
         names = self.prepared.flat.prim_material
@@ -210,6 +310,22 @@ class CSGShape(mi.Mesh):
 
 
 _PROPERTIES = ("filename", "model", "optimize", "to_world")
+# mi.traverse names that compose primitive_to_world (see the docstring).
+_NAMED_PARAMETERS = ("to_world", "primitive_translation", "primitive_rotation", "primitive_scale")
+
+
+def _rotation_matrix(v):
+    """Rodrigues' rotation for rotation vectors v (axis times angle, radians), differentiable at 0."""
+    theta2 = dr.squared_norm(v)
+    theta = dr.sqrt(dr.maximum(theta2, 1e-12))
+    small = theta2 < 1e-6
+    # sin(t) / t and (1 - cos(t)) / t^2, by their series near 0 (no 0 / 0 in value or gradient)
+    a = dr.select(small, 1.0 - theta2 / 6.0, dr.sin(theta) / theta)
+    b = dr.select(small, 0.5 - theta2 / 24.0, (1.0 - dr.cos(theta)) / dr.maximum(theta2, 1e-12))
+    k = mi.Matrix3f(0.0, -v.z, v.y,
+                    v.z, 0.0, -v.x,
+                    -v.y, v.x, 0.0)
+    return dr.identity(mi.Matrix3f) + k * a + (k @ k) * b
 
 
 def _model_from(props):

@@ -236,21 +236,24 @@ def _erode(mask):
     return out
 
 
-def _gradient_check(model, weights, light, eps=0.01, spp=64):
+def _gradient_check(model, weights, light, eps=0.01, spp=64, key="primitive_to_world"):
     """Forward-mode csg_prb derivative vs central differences with the same seed, on pixels
     whose visible primitive is the same at -eps, 0 and +eps and which are not within a pixel
-    of an edge (visibility derivatives are not computed)."""
+    of an edge or a face's edge (visibility derivatives are not computed)."""
     def d(integrator):
         return scene_dict(csg_shape(model), integrator, width=64, height=48, spp=spp, extra={"sun": light})
 
     scene = mi.load_dict({k: v for k, v in d({"type": "csg_prb", "max_depth": 2}).items()
                           if k not in ("floor", "lamp", "sky")})
     params = mi.traverse(scene)
-    key = "object.primitive_to_world"
-    base = np.array(params[key])
+    key = f"object.{key}"
+    # to_world is a transform: its 4x4 matrix moves along `weights` (16 values, row-major).
+    as_value = ((lambda v: mi.Transform4f(mi.Matrix4f(*[dr.gather(mi.Float, v, i) for i in range(16)])))
+                if key.endswith(".to_world") else (lambda v: v))
+    base = (np.array(params[key].matrix)[..., 0].ravel() if key.endswith(".to_world") else np.array(params[key]))
     h = mi.Float(0.0)
     dr.enable_grad(h)
-    params[key] = mi.Float(base) + h * mi.Float(weights)
+    params[key] = as_value(mi.Float(base) + h * mi.Float(weights))
     params.update()
     image = mi.render(scene, params, spp=spp, seed=1)
     dr.forward(h)
@@ -258,26 +261,48 @@ def _gradient_check(model, weights, light, eps=0.01, spp=64):
 
     def at(v, sc):
         p = mi.traverse(sc)
-        p[key] = mi.Float(base + v * weights)
+        p[key] = as_value(mi.Float(base + v * weights))
         p.update()
         return np.array(mi.render(sc, spp=spp, seed=1))
     fd = (at(eps, scene) - at(-eps, scene)) / (2 * eps)
-    aov_scene = mi.load_dict({k: v for k, v in d({"type": "csg_aov", "aovs": "prim:prim_index,dd:depth"}).items()
-                              if k not in ("floor", "lamp", "sky")})
+    aov_scene = mi.load_dict({k: v for k, v in d({"type": "csg_aov", "aovs": "prim:prim_index,dd:depth,nn:sh_normal"})
+                              .items() if k not in ("floor", "lamp", "sky")})
     aovs = [at(v, aov_scene) for v in (-eps, 0.0, eps)]
     same = np.all([np.abs(a[..., 3] - aovs[1][..., 3]) < 1e-6 for a in aovs], axis=0)
     hit = np.all([a[..., 4] > 0 for a in aovs], axis=0)
-    interior = _erode(same & hit)
+
+    def unit(n):
+        return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    # The same face too (a box's edges move within one primitive): a pixel across an edge
+    # averages two normals, shorter than 1, and a face keeps its normal within 0.01 rad or so.
+    same_face = np.all([(np.linalg.norm(a[..., 5:8], axis=-1) > 0.98)
+                        & (np.sum(unit(a[..., 5:8]) * unit(aovs[1][..., 5:8]), axis=-1) > 0.99) for a in aovs], axis=0)
+    interior = _erode(same & hit) & same_face
     assert interior.sum() > 100
     g, f = grad[interior], fd[interior]
     return g, f
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case", ["position", "radius", "hole_position", "mesh_hole_position"])
+@pytest.mark.parametrize("case", ["position", "radius", "hole_position", "mesh_hole_position", "named_translation",
+                                  "named_scale", "named_rotation", "named_to_world"])
 def test_prb_interior_derivatives_match_finite_differences(case):
-    """Tolerance: the summed interior derivative within 2% and a per-pixel correlation > 0.98."""
+    """Tolerance: the summed interior derivative within 2% and a per-pixel correlation > 0.98.
+    The named_* cases move the same primitives through the shape's named parameters."""
     point = {"type": "point", "position": [3, -4, 5], "intensity": 60.0}
+    named = {"named_translation": (csg.Sphere(1.0), "primitive_translation", [1.0, 0.0, 0.0]),
+             "named_scale": (csg.Sphere(1.0), "primitive_scale", [1.0]),
+             # about z: a tilt moves the light's terminator and shadow edges across faces
+             "named_rotation": (csg.Box(1.6), "primitive_rotation", [0.0, 0.0, 1.0]),
+             "named_to_world": (csg.Box(1.6), "to_world", None)}
+    if case in named:
+        model, key, w = named[case]
+        if w is None:           # the whole shape's to_world: turn about z (its first two rows)
+            w = [0.0, -1.0, 0, 0, 1.0, 0.0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+        g, f = _gradient_check(model, np.array(w, np.float32), point, key=key)
+        assert abs(g.sum() - f.sum()) < 0.02 * abs(f.sum()), (g.sum(), f.sum())
+        assert np.corrcoef(g.ravel(), f.ravel())[0, 1] > 0.98
+        return
     if case == "position":       # a sphere's centre x: entry 3 of its 3x4 to_world rows
         model, w = csg.Sphere(1.0), np.eye(1, 12, 3).ravel()
     elif case == "radius":       # a sphere's radius: the diagonal of the linear part
@@ -292,6 +317,41 @@ def test_prb_interior_derivatives_match_finite_differences(case):
     g, f = _gradient_check(model, w.astype(np.float32), point)
     assert abs(g.sum() - f.sum()) < 0.02 * abs(f.sum()), (g.sum(), f.sum())
     assert np.corrcoef(g.ravel(), f.ravel())[0, 1] > 0.98
+
+
+def test_named_parameters_move_primitives_as_the_model_api_does():
+    """primitive_translation / _rotation / _scale and to_world give the matrices that the same
+    placement written with the model API (translate, rotate, a larger radius) gives."""
+    model = csg.Box(2.0) - csg.Sphere(0.8).translate((0.5, 0, 0))
+    scene = mi.load_dict({"type": "scene", "obj": {"type": "csg", "model": csg.model_ref(model), "optimize": False,
+                                                   "to_world": mi.ScalarTransform4f().translate([0, 0, 1])}})
+    params = mi.traverse(scene)
+    np.testing.assert_allclose(np.array(params["obj.primitive_translation"]), [0, 0, 0, 0.5, 0, 0])
+    params["obj.primitive_translation"] = mi.Float([0, 0, 0, 0.2, 0.3, 0.4])
+    params["obj.primitive_rotation"] = mi.Float([0, 0, np.pi / 2, 0, 0, 0])
+    params["obj.primitive_scale"] = mi.Float([1.0, 1.5])
+    params.update()
+    expected = (csg.Box(2.0).rotate((0, 0, 1), 90) - csg.Sphere(1.2).translate((0.2, 0.3, 0.4))).translate((0, 0, 1))
+    reference = csg.prepare(expected, optimize=False).flat.prim_to_world[:, :3, :]
+    got = np.array(params["obj.primitive_to_world"]).reshape(-1, 3, 4)
+    np.testing.assert_allclose(got, reference, atol=1e-6)
+    shape = scene.shapes()[0]
+    hits = csg.trace_rays(shape.prepared, mi.Point3f(0.2, 0.3, 5.0), mi.Vector3f(0, 0, -1))
+    # Down through the hole's centre: the box's top (z = 2) lies inside the enlarged hole, whose
+    # bottom is at z = 1.4 - 1.2.
+    assert float(hits.t[0]) == pytest.approx(5.0 - 0.2, abs=1e-5)
+    # to_world moves everything; a write of primitive_to_world re-bases the named parameters.
+    params["obj.to_world"] = mi.Transform4f().translate([0, 0, 3])
+    params.update()
+    got = np.array(params["obj.primitive_to_world"]).reshape(-1, 3, 4)
+    np.testing.assert_allclose(got[:, :, 3], reference[:, :, 3] + [0, 0, 2], atol=1e-6)
+    params["obj.primitive_to_world"] = mi.Float(reference.astype(np.float32).ravel())
+    params.update()
+    np.testing.assert_allclose(np.array(params["obj.primitive_scale"]), [1, 1])
+    np.testing.assert_allclose(np.array(params["obj.primitive_translation"]), [0, 0, -2, 0.2, 0.3, -1.6], atol=1e-6)
+    params["obj.primitive_scale"] = mi.Float([1.0, -1.0])
+    with pytest.raises(csg.CSGError, match="primitive_scale must be positive"):
+        params.update()
 
 
 @pytest.mark.slow
@@ -310,18 +370,20 @@ def test_inverse_rendering_recovers_a_radius():
     target = mi.render(mi.load_dict(d(csg.Sphere(1.0))), spp=256, seed=7)
     scene = mi.load_dict(d(csg.Sphere(1.0)))
     params = mi.traverse(scene)
-    key = "object.primitive_to_world"
-    diagonal = mi.Float(np.array([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], np.float32))
+    # The sphere's own scale (its radius, relative to the loaded 1.0): as in docs/plugins.md.
+    key = "object.primitive_scale"
     opt = mi.ad.Adam(lr=0.02)
     opt["radius"] = mi.Float(0.8)
     for it in range(60):
         if it == 40:
             opt.set_learning_rate(0.005)
-        params[key] = opt["radius"] * diagonal
+        params[key] = opt["radius"]
         params.update()
         image = mi.render(scene, params, spp=32, seed=it)
         dr.backward(dr.mean(dr.square(image - target), axis=None))
         opt.step()
+    rows = np.array(params["object.primitive_to_world"]).reshape(3, 4)
+    np.testing.assert_allclose(rows[:, :3], rows[0, 0] * np.eye(3), atol=1e-6)    # still a sphere
     assert abs(opt["radius"][0] - 1.0) < 0.03, opt["radius"]
 
 
