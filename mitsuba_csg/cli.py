@@ -275,7 +275,7 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--output", default="cheese.exr", help="output OpenEXR file (default: cheese.exr)")
     r.add_argument("--spp", type=_positive_int, default=16, help="samples per pixel (default 16)")
     r.add_argument("--size", type=_size, default=(640, 360), help="WIDTHxHEIGHT (default 640x360)")
-    r.add_argument("--integrator", default="csg_path", choices=["csg_path", "csg_aov", "csg_prb"])
+    r.add_argument("--integrator", default="csg_path", choices=["csg_path", "csg_volpath", "csg_aov", "csg_prb"])
     r.add_argument("--passes", type=_positive_int, default=4, help="render in this many passes (progress)")
     r.add_argument("--png", action="store_true", help="also write a tonemapped sRGB .png preview")
     r.add_argument("--cut", action="append", metavar="AXIS>VALUE",
@@ -314,7 +314,7 @@ def parser() -> argparse.ArgumentParser:
     a.add_argument("--size", type=_size_list, default=None, help="WIDTHxHEIGHT (default 640x360; "
                    "an .xml scene: its own)")
     a.add_argument("--seed", type=int, default=None, help="seed of the job's chunk seeds (default 0)")
-    a.add_argument("--integrator", default=None, choices=["csg_path", "csg_aov", "csg_prb"])
+    a.add_argument("--integrator", default=None, choices=["csg_path", "csg_volpath", "csg_aov", "csg_prb"])
     a.add_argument("--no-png", action="store_true", help="write only the .exr images")
     a.add_argument("--workers", type=_positive_int, default=None,
                    help="Ray workers (default: the cluster's CPUs / --threads)")

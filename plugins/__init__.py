@@ -17,15 +17,17 @@ def register() -> None:
     variant = mi.variant()
     if variant in _registered_for:
         return
-    from . import csg_aov, csg_common, csg_path, csg_shape, integrator_guard
-    modules = [csg_shape, csg_common, csg_path, csg_aov]
+    from . import csg_aov, csg_common, csg_path, csg_shape, csg_volpath, integrator_guard
+    modules = [csg_shape, csg_common, csg_path, csg_aov, csg_volpath]
     if _modules_variant and _modules_variant[-1] != variant:
         modules = [importlib.reload(m) for m in modules]
     _modules_variant.append(variant)
     shape_cls, path_cls, aov_cls = csg_shape.CSGShape, csg_path.CSGPathIntegrator, csg_aov.CSGAOVIntegrator
+    volpath_cls = csg_volpath.CSGVolpathIntegrator
     mi.register_shape("csg", lambda props: shape_cls(props))
     mi.register_integrator("csg_path", lambda props: path_cls(props))
     mi.register_integrator("csg_aov", lambda props: aov_cls(props))
+    mi.register_integrator("csg_volpath", lambda props: volpath_cls(props))
     if variant.startswith(("llvm_ad", "cuda_ad")):
         from . import csg_prb
         if len(_modules_variant) > 1:

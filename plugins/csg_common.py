@@ -13,20 +13,20 @@ from . import integrator_guard
 class SceneCSG:
     """The CSG shapes of a scene and whether anything else (meshes, spheres, ...) is in it."""
 
-    def __init__(self, scene: mi.Scene):
+    def __init__(self, scene: mi.Scene, media: bool = False):
+        """`media`: the integrator traces participating media (csg_volpath); the others refuse
+        scenes with media rather than render them as if the media were absent."""
         shapes = scene.shapes()
-        for shape in shapes:
-            # Refused rather than ignored: an image without the fog or the absorption would
-            # look plausible and be wrong.
+        for shape in shapes if not media else ():
             if shape.interior_medium() is not None or shape.exterior_medium() is not None:
-                raise ValueError(f"the csg_* integrators do not trace participating media, and shape "
+                raise ValueError(f"only csg_volpath traces participating media, and shape "
                                  f"{shape.id() or type(shape).__name__!r} has an interior or exterior medium; "
-                                 f"render media with Mitsuba's volpath (on a mesh of the model)")
-        for sensor in scene.sensors():
+                                 f"render it with csg_volpath")
+        for sensor in scene.sensors() if not media else ():
             if sensor.get_medium() is not None:
-                raise ValueError(f"the csg_* integrators do not trace participating media, and sensor "
-                                 f"{sensor.id() or type(sensor).__name__!r} sits in a medium; render media with "
-                                 f"Mitsuba's volpath (on a mesh of the model)")
+                raise ValueError(f"only csg_volpath traces participating media, and sensor "
+                                 f"{sensor.id() or type(sensor).__name__!r} sits in a medium; render it with "
+                                 f"csg_volpath")
         # Duck-typed: each Mitsuba variant has its own CSGShape class.
         self.csg = integrator_guard.csg_shapes(scene)
         self.shape_index = {id(s): i for i, s in enumerate(shapes)}
@@ -119,6 +119,13 @@ def read_depths(props, name: str):
     if rr_depth <= 0:
         raise ValueError(f"{name}: \"rr_depth\" must be set to a value greater than zero!")
     return (2**32 - 1 if max_depth == -1 else max_depth), rr_depth
+
+
+def read_hide_emitters(props, name: str) -> bool:
+    hide = props.get("hide_emitters", False)
+    if not isinstance(hide, bool):
+        raise ValueError(f"{name}: \"hide_emitters\" must be a boolean, got {hide!r}")
+    return hide
 
 
 def camera_ray_valid(scene: mi.Scene, hide_emitters: bool, depth):

@@ -6,7 +6,7 @@ import mitsuba as mi
 
 from mitsuba.ad.integrators.common import mis_weight
 
-from .csg_common import SceneCSG, camera_ray_valid, read_depths
+from .csg_common import SceneCSG, camera_ray_valid, read_depths, read_hide_emitters
 
 
 class CSGPathIntegrator(mi.SamplingIntegrator):
@@ -33,7 +33,8 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
     BSDF sampling, Russian roulette. Every ray (camera, bounce, shadow) is tested against
     Mitsuba's own shapes and the exact CSG solids, and the nearer hit wins; CSG hits use the
     BSDF of the primitive's material. When a scene holds only CSG shapes, Embree is not
-    called at all. Participating media are not supported.
+    called at all. Participating media are refused (a scene with media would render as if
+    they were absent): `csg_volpath` traces them.
 
     .. code-block:: python
 
@@ -46,9 +47,7 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.max_depth, self.rr_depth = read_depths(props, "csg_path")
-        self.hide_emitters = props.get("hide_emitters", False)
-        if not isinstance(self.hide_emitters, bool):
-            raise ValueError(f"csg_path: \"hide_emitters\" must be a boolean, got {self.hide_emitters!r}")
+        self.hide_emitters = read_hide_emitters(props, "csg_path")
 
     @dr.syntax
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,

@@ -38,6 +38,9 @@ class CSGShape(mi.Mesh):
      * - to_world
        - |transform|
        - Placement of the model in the scene. (Default: none)
+     * - interior, exterior
+       - |medium|
+       - Media inside and outside the solid, for `csg_volpath`. (Default: none)
      * - (Nested plugin)
        - |bsdf|
        - The default BSDF. BSDFs with an `id` equal to a material name used by the model are
@@ -49,9 +52,10 @@ class CSGShape(mi.Mesh):
     bounding box, which keeps scene bounds right), so rendering a scene that holds a `csg`
     shape with one of them raises an error naming the integrator and the shape rather than
     rendering the scene without the model; render a mesh of the model
-    (`mitsuba_csg.to_mesh`) where they are needed. It cannot be an area emitter, hold other
-    shapes or media, or sit in a `shapegroup` (instancing: refused, the group's own
-    acceleration structure would not see it); any other property is refused by name, as
+    (`mitsuba_csg.to_mesh`) where they are needed. `interior` and `exterior` media are
+    crossed at the CSG boundary by `csg_volpath` (a glass solid full of ink, say). It cannot
+    be an area emitter, hold other shapes, or sit in a `shapegroup` (instancing: refused, the
+    group's own acceleration structure would not see it); any other property is refused by name, as
     Mitsuba's own plugins refuse unused ones, and a BSDF that matches no material once a
     default is chosen is reported as unused.
 
@@ -137,8 +141,9 @@ class CSGShape(mi.Mesh):
                 raise CSGError(f"csg shape ({source}): cannot hold other shapes ('{name}'); put them beside it in "
                                f"the scene, or make them part of the model")
             elif isinstance(value, mi.Medium):
-                raise CSGError(f"csg shape ({source}): media ('{name}') are not supported on csg shapes: the csg_* "
-                               f"integrators do not trace participating media")
+                if name not in ("interior", "exterior"):
+                    raise CSGError(f"csg shape ({source}): a medium goes in 'interior' or 'exterior', not '{name}'")
+                # Kept for Mitsuba's Shape: csg_volpath crosses it at the CSG boundary.
             else:
                 raise CSGError(f"csg shape ({source}): unknown property '{name}'; a csg shape takes filename or "
                                f"model, optimize, to_world and BSDFs")

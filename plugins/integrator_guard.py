@@ -20,7 +20,7 @@ import functools
 
 from mitsuba_csg.errors import CSGError
 
-CSG_INTEGRATORS = "csg_path (path tracing), csg_prb (differentiable) or csg_aov (buffers)"
+CSG_INTEGRATORS = "csg_path (path tracing), csg_volpath (media), csg_prb (differentiable) or csg_aov (buffers)"
 
 
 _BOUND_BASES = {"Integrator", "SamplingIntegrator", "MonteCarloIntegrator", "AdjointIntegrator", "Shape", "Mesh"}

@@ -403,7 +403,7 @@ def test_an_image_that_was_not_written_whole_is_an_error(tmp_path, monkeypatch):
     ({"optimize": "false"}, "'optimize' must be a boolean"),
     ({"to_world": "translate(1, 0, 0)"}, "'to_world' must be a transform"),
     ({"inner": {"type": "sphere"}}, "cannot hold other shapes ('inner')"),
-    ({"interior": {"type": "homogeneous"}}, "media ('interior') are not supported on csg shapes"),
+    ({"fog": {"type": "homogeneous"}}, "a medium goes in 'interior' or 'exterior', not 'fog'"),
 ])
 def test_the_csg_shape_refuses_properties_it_would_ignore(extra, message):
     """Misspelt or mistyped properties were silently ignored or misread ("false" was true)."""

@@ -450,7 +450,7 @@ def test_media_are_refused_not_ignored(integrator, capfd):
         mi.render(scene)
     # Mitsuba prints the integrator's own error and raises its render operation's failure
     shown = str(info.value) + str(info.value.__cause__) + capfd.readouterr().err
-    assert "do not trace participating media, and shape 'fog_ball'" in shown, shown[-500:]
+    assert "only csg_volpath traces participating media, and shape 'fog_ball'" in shown, shown[-500:]
     foggy_camera = mi.load_dict({"type": "scene", "integrator": {"type": integrator},
                                  "sensor": {"type": "perspective", "id": "cam", "medium": {"type": "homogeneous"},
                                             "film": {"type": "hdrfilm", "width": 8, "height": 8}},
@@ -459,6 +459,41 @@ def test_media_are_refused_not_ignored(integrator, capfd):
         mi.render(foggy_camera)
     shown = str(info.value) + str(info.value.__cause__) + capfd.readouterr().err
     assert "sensor 'cam' sits in a medium" in shown, shown[-500:]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["absorbing_glass", "fog"])
+def test_csg_volpath_matches_volpath_on_the_mesh(case, tmp_path):
+    """A glass CSG solid with an absorbing interior, and the scene in fog (the camera inside it,
+    a null-BSDF cube holding it): csg_volpath on the CSG against Mitsuba's volpath on the
+    manifold3d mesh, the metric of test_csg_path_matches_path_on_the_mesh."""
+    mesh = {**mesh_shape(MODEL, tmp_path), "face_normals": True}
+    if case == "absorbing_glass":
+        interior = {"bsdf": {"type": "dielectric"}, "interior": {"type": "homogeneous", "albedo": 0.0, "sigma_t": 1.5}}
+        shape_csg, shape_mesh, extra = {**csg_shape(MODEL), **interior}, {**mesh, **interior}, {}
+    else:
+        extra = {"fog": {"type": "homogeneous", "id": "fog", "albedo": 0.8, "sigma_t": 0.12},
+                 "box": {"type": "cube", "bsdf": {"type": "null"}, "interior": {"type": "ref", "id": "fog"},
+                         "to_world": mi.ScalarTransform4f().scale(12)}}
+        shape_csg, shape_mesh = csg_shape(MODEL), mesh
+
+    def d(shape, integrator):
+        scene = scene_dict(shape, {"type": integrator, "max_depth": 8}, spp=256, extra=extra)
+        if case == "fog":
+            scene["sensor"]["medium"] = {"type": "ref", "id": "fog"}
+            del scene["lamp"]      # a point light inside the fog: fine for both, but slow to converge
+        return scene
+    mesh_a = render(d(shape_mesh, "volpath"), seed=1)
+    mesh_b = render(d(shape_mesh, "volpath"), seed=2)
+    noise = rel_mse(mesh_a, mesh_b)
+    ours = rel_mse(render(d(shape_csg, "csg_volpath"), seed=3), mesh_a)
+    assert ours < 1.5 * noise + 1e-4, (ours, noise)
+    without = dict(d(shape_mesh, "volpath"))
+    without["object"] = {k: v for k, v in shape_mesh.items() if k != "interior"}
+    if case == "fog":
+        del without["box"]
+        without["sensor"] = {k: v for k, v in without["sensor"].items() if k != "medium"}
+    assert rel_mse(render(without, seed=3), mesh_a) > 4 * noise        # the medium shows
 
 
 def _aov_image(shape: dict, integrator: dict, to_world=LOOK, size=(48, 32)):

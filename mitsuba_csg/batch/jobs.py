@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import CSGError
 from ..scenes import NAMED as BUILTIN_SCENES
 
-INTEGRATORS = ("csg_path", "csg_aov", "csg_prb")
+INTEGRATORS = ("csg_path", "csg_volpath", "csg_aov", "csg_prb")
 DEFAULT_SPP = 16
 DEFAULT_CHUNK_SPP = 8
 DEFAULT_SIZE = (640, 360)
