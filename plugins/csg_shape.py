@@ -62,7 +62,7 @@ class CSGShape(mi.Mesh):
     Hits carry texture coordinates and tangents, so bitmap textures, normal and bump maps and
     anisotropic BSDFs work: spheres as Mitsuba's `sphere` (u = phi / 2 pi, v = theta / pi),
     cylinder, cone and quadric sides as Mitsuba's `cylinder` (u = phi / 2 pi, v from 0 at the
-    bottom to 1 at the top), caps and box faces [0, 1] across each face, tori by their two
+    bottom to 1 at the top), box faces as Mitsuba's `cube`, caps [0, 1] across, tori by their two
     angles, convex faces by a frame in their plane, mesh triangles by barycentric coordinates;
     the shading frame's tangent follows dp_du.
 

@@ -98,8 +98,8 @@ def surface_coordinates(tree, prim, info, o, d, t, active):
 
     Each canonical shape has a parameterization (docs/plugins.md): spheres as Mitsuba's
     `sphere` (u = phi / 2 pi, v = theta / pi), the sides of cylinders, cones and quadrics as
-    Mitsuba's `cylinder` (u = phi / 2 pi, v up the axis from 0 to 1), caps and box faces
-    planar from 0 to 1 across, the torus by its two angles, convex faces by a frame in their
+    Mitsuba's `cylinder` (u = phi / 2 pi, v up the axis from 0 to 1), box faces as Mitsuba's
+    `cube`, caps planar from 0 to 1 across, the torus by its two angles, convex faces by a frame in their
     plane, mesh triangles by barycentric coordinates as Mitsuba's meshes without texture
     coordinates. Shading frames follow dp_du, so anisotropic BSDFs and normal maps have a
     tangent.
@@ -130,14 +130,20 @@ def surface_coordinates(tree, prim, info, o, d, t, active):
     du_cap, dv_cap = b.Array3f(2.0, 0.0, 0.0) + zero, b.Array3f(0.0, 2.0, 0.0) + zero
     side = face == 0
     uv_side = m.Array2f(phi / two_pi, 0.5 * (x.z + 1.0))
-    # Box faces: the two other axes, in cyclic order.
-    axis = face // 2
-    coords = [x.x, x.y, x.z]
-    units = [b.Array3f(2.0, 0.0, 0.0) + zero, b.Array3f(0.0, 2.0, 0.0) + zero, b.Array3f(0.0, 0.0, 2.0) + zero]
-    u_box = dr.select(axis == 0, coords[1], dr.select(axis == 1, coords[2], coords[0]))
-    v_box = dr.select(axis == 0, coords[2], dr.select(axis == 1, coords[0], coords[1]))
-    du_box = dr.select(axis == 0, units[1], dr.select(axis == 1, units[2], units[0]))
-    dv_box = dr.select(axis == 0, units[2], dr.select(axis == 1, units[0], units[1]))
+    # Box faces as Mitsuba's `cube` lays its texture out: per face (-x, +x, -y, +y, -z, +z),
+    # u and v run along these signed canonical axes.
+    ex, ey, ez = (b.Array3f(2.0, 0.0, 0.0) + zero, b.Array3f(0.0, 2.0, 0.0) + zero,
+                  b.Array3f(0.0, 0.0, 2.0) + zero)
+
+    def per_face(values):
+        out = values[5]
+        for k in range(4, -1, -1):
+            out = dr.select(face == k, values[k], out)
+        return out
+    u_box = per_face([x.y, x.y, x.z, -x.x, -x.y, x.y])
+    v_box = per_face([x.z, -x.z, x.x, -x.z, x.x, x.x])
+    du_box = per_face([ey, ey, ez, -ex, -ey, ey])
+    dv_box = per_face([ez, -ez, ex, -ez, ex, ex])
     uv_box = m.Array2f(0.5 * (u_box + 1.0), 0.5 * (v_box + 1.0))
     # Torus: major angle phi, minor angle psi (minor radius k = param[0]).
     psi = dr.atan2(x.z, rho - 1.0)
