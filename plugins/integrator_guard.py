@@ -57,6 +57,19 @@ def grouped_csg_shapes(mi, scene) -> list:
     return found
 
 
+# What to use instead of a Mitsuba integrator, by the words in its class name.
+_COUNTERPARTS = (("Volpath", "csg_volpath"), ("Volumetric", "csg_volpath"), ("DirectProjective", "csg_prb"),
+                 ("Direct", "csg_path with max_depth 2"), ("Depth", "csg_aov"), ("AOV", "csg_aov"),
+                 ("PRB", "csg_prb"), ("Projective", "csg_prb"), ("Path", "csg_path"))
+
+
+def counterpart(name: str) -> str:
+    for word, instead in _COUNTERPARTS:
+        if word.lower() in name.lower():
+            return instead
+    return CSG_INTEGRATORS
+
+
 def describe(shapes) -> str:
     names = [s.id() or "(no id)" for s in shapes]
     shown = ", ".join(repr(n) for n in names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
@@ -87,8 +100,8 @@ def check(mi, integrator, scene) -> None:
     if shapes:
         raise CSGError(f"the {_name(integrator)} integrator cannot see the {describe(shapes)}: Mitsuba's own "
                        f"integrators trace only Mitsuba's shapes and would render the scene without the model. "
-                       f"Use {CSG_INTEGRATORS}, or render a mesh of the model (mitsuba_csg.to_mesh) with "
-                       f"{_name(integrator)}")
+                       f"Use {counterpart(_name(integrator))} (the csg_* integrators: {CSG_INTEGRATORS}), or "
+                       f"render a mesh of the model (mitsuba_csg.to_mesh) with {_name(integrator)}")
 
 
 def _guarded(mi, method):
