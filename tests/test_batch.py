@@ -211,9 +211,10 @@ def test_an_interrupted_batch_resumes_from_its_saved_chunks(tmp_path):
     those of an uninterrupted run (the same chunks, the same seeds)."""
     def job_file(folder):
         folder.mkdir()
-        (folder / "jobs.json").write_text(json.dumps({"defaults": {"size": "64x48", "chunk_spp": 1},
-                                                      "jobs": [{"input": str(MODEL), "output": "a.exr", "spp": 6},
-                                                               {"input": "city-3385", "output": "b.exr", "spp": 4}]}))
+        # Chunks long enough (about 0.1 s each) that the Ctrl-C lands while job a is running.
+        (folder / "jobs.json").write_text(json.dumps({"defaults": {"size": "160x120", "chunk_spp": 1},
+                                                      "jobs": [{"input": "cheese-500", "output": "a.exr", "spp": 16},
+                                                               {"input": str(MODEL), "output": "b.exr", "spp": 4}]}))
         return folder / "jobs.json"
     command = [sys.executable, "-m", "mitsuba_csg", "batch", "--local", "--threads", "1"]
     whole = job_file(tmp_path / "whole")
@@ -224,7 +225,7 @@ def test_an_interrupted_batch_resumes_from_its_saved_chunks(tmp_path):
     chunks = cut.parent / ".a.exr.chunks"
     deadline = time.time() + 120
     while not list(chunks.glob("chunk-*.npz")) and time.time() < deadline and process.poll() is None:
-        time.sleep(0.05)
+        time.sleep(0.01)
     process.send_signal(signal.SIGINT)
     out, err = process.communicate(timeout=120)
     assert process.returncode == 130, err
@@ -233,7 +234,7 @@ def test_an_interrupted_batch_resumes_from_its_saved_chunks(tmp_path):
     assert saved >= 1 and not (cut.parent / "b.exr").exists()
     rerun = subprocess.run([*command, str(cut)], capture_output=True, text=True, cwd=ROOT)
     assert rerun.returncode == 0, rerun.stderr
-    assert f"{6 - saved} rendered, {saved} reused" in rerun.stdout
+    assert f"{16 - saved} rendered, {saved} reused" in rerun.stdout
     for name in ("a.exr", "b.exr"):
         np.testing.assert_array_equal(read_rgb(cut.parent / name), read_rgb(whole.parent / name))
     assert not list(chunks.glob("chunk-*.npz"))         # removed once the image is written

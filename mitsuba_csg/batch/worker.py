@@ -45,6 +45,10 @@ class ChunkRenderer:
         sensor = sensors[job.sensor]
         self._pose(job, scene, sensor, poses)
         mi.render(scene, sensor=sensor, seed=seed, spp=spp)
+        if scene.integrator().should_stop():
+            # Mitsuba's render loop takes Ctrl-C itself ("winding down"): the chunk may lack
+            # samples, so it is dropped, and the interrupt goes on to the batch.
+            raise KeyboardInterrupt
         bitmap = sensor.film().bitmap(raw=True)
         raw = np.array(bitmap, dtype=np.float32)
         dr.sync_thread()
