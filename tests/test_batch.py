@@ -220,8 +220,9 @@ def test_an_interrupted_batch_resumes_from_its_saved_chunks(tmp_path):
     whole = job_file(tmp_path / "whole")
     subprocess.run([*command, str(whole)], check=True, capture_output=True, cwd=ROOT)
     cut = job_file(tmp_path / "cut")
+    # As from a terminal: a test run started in the background inherits SIGINT ignored.
     process = subprocess.Popen([*command, str(cut)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               cwd=ROOT)
+                               cwd=ROOT, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     chunks = cut.parent / ".a.exr.chunks"
     deadline = time.time() + 120
     while not list(chunks.glob("chunk-*.npz")) and time.time() < deadline and process.poll() is None:

@@ -251,7 +251,10 @@ class _StopRequest:
 
     def __enter__(self):
         import threading
-        if threading.current_thread() is threading.main_thread():
+        # Only from the main thread, and not where SIGINT is ignored (nohup, a background job
+        # of a script): such a run is not meant to stop on Ctrl-C.
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN):
             self._previous = signal.signal(signal.SIGINT, self._handle)
         return self
 
