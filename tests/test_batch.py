@@ -83,7 +83,7 @@ def test_merged_chunks_estimate_the_image_as_one_render_does(tmp_path):
 def test_chunk_seeds_are_fixed_and_distinct():
     [job] = batch.parse_jobs([{"output": "x.exr", "spp": 20, "chunk_spp": 8, "seed": 3}], Path("."))
     chunks = job.chunks()
-    assert [c.spp for c in chunks] == [8, 8, 4]
+    assert [c.spp for c in chunks] == [8, 8, 4] and job.chunk_count == 3
     assert len({c.seed for c in chunks}) == 3
     assert [c.seed for c in chunks] == [c.seed for c in job.chunks()]            # not random per run
     [other] = batch.parse_jobs([{"output": "x.exr", "spp": 20, "chunk_spp": 8, "seed": 4}], Path("."))

@@ -9,6 +9,7 @@ whatever order its chunks run.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 from pathlib import Path
@@ -58,6 +59,10 @@ class Job:
     def is_xml(self) -> bool:
         return self.input is not None and self.input.lower().endswith(".xml")
 
+    @property
+    def chunk_count(self) -> int:
+        return -(-self.spp // self.chunk_spp)
+
     def chunks(self) -> list[Chunk]:
         """Full chunks of `chunk_spp` samples, then the remainder; seeds from (seed, index)."""
         counts = [self.chunk_spp] * (self.spp // self.chunk_spp)
@@ -102,6 +107,14 @@ def chunk_seed(job_seed: int, index: int) -> int:
 
 
 def _file_sha1(path: Path) -> str:
+    """The file's SHA-1, read once per (path, size, modification time): the frames of a
+    turntable of one large file share it."""
+    stat = path.stat()
+    return _sha1_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=64)
+def _sha1_of(path: str, size: int, mtime_ns: int) -> str:
     h = hashlib.sha1()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):

@@ -141,7 +141,7 @@ def _accept(reply: dict, k: int, chunk, results, stores, bar, pids):
     result.seconds += reply["seconds"]
     height, width = reply["raw"].shape[:2]
     bar.advance(width * height * chunk.spp)
-    if result.chunks_rendered + result.chunks_reused == len(result.job.chunks()):
+    if result.chunks_rendered + result.chunks_reused == result.job.chunk_count:
         _finish(result, stores[k])
 
 

@@ -99,7 +99,7 @@ class ChunkStore:
         return self.folder / f"chunk-{index:04d}.npz"
 
     def _write_meta(self, complete: bool):
-        meta = {"fingerprint": self.fingerprint, "complete": complete, "chunks": len(self.job.chunks()),
+        meta = {"fingerprint": self.fingerprint, "complete": complete, "chunks": self.job.chunk_count,
                 "input": self.job.input, "spp": self.job.spp, "seed": self.job.seed}
         partial = self.folder / ".job.json.partial"
         partial.write_text(json.dumps(meta, indent=1))
