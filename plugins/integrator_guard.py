@@ -17,6 +17,7 @@ structure holds Mitsuba's shapes only, so its copies would be invisible.
 from __future__ import annotations
 
 import functools
+import threading
 
 from mitsuba_csg.errors import CSGError
 
@@ -104,10 +105,16 @@ def check(mi, integrator, scene) -> None:
                        f"render a mesh of the model (mitsuba_csg.to_mesh) with {_name(integrator)}")
 
 
+# (integrator, scene) pairs that `mi.render` checked and is rendering now: its call reaches
+# the integrator's own (wrapped) render, which need not scan the scene again.
+_checked = threading.local()
+
+
 def _guarded(mi, method):
     @functools.wraps(method)
     def render(self, scene, *args, **kwargs):
-        check(mi, self, scene)
+        if getattr(_checked, "pair", None) != (id(self), id(scene)):
+            check(mi, self, scene)
         return method(self, scene, *args, **kwargs)
     render._csg_guard = True
     return render
@@ -118,8 +125,13 @@ def _guarded_render_function(mi, render):
     its own 'error while performing a custom differentiable operation')."""
     @functools.wraps(render)
     def guarded(scene, params=None, sensor=0, integrator=None, *args, **kwargs):
-        check(mi, integrator if integrator is not None else scene.integrator(), scene)
-        return render(scene, params, sensor, integrator, *args, **kwargs)
+        used = integrator if integrator is not None else scene.integrator()
+        check(mi, used, scene)
+        outer, _checked.pair = getattr(_checked, "pair", None), (id(used), id(scene))
+        try:
+            return render(scene, params, sensor, integrator, *args, **kwargs)
+        finally:
+            _checked.pair = outer
     guarded._csg_guard = True
     return guarded
 

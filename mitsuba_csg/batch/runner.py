@@ -150,10 +150,10 @@ def _fail(k: int, error: str, results, queue, bar):
     result = results[k]
     if result.status != "failed":
         result.status, result.error = "failed", error
-    dropped = [item for item in queue if item[0] == k]
-    for item in dropped:
-        queue.remove(item)
-    bar.skip(len(dropped))
+    kept = [item for item in queue if item[0] != k]
+    bar.skip(len(queue) - len(kept))
+    queue.clear()
+    queue.extend(kept)
 
 
 def _one_line(error: BaseException) -> str:
