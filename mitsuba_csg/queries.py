@@ -110,7 +110,8 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen:
     tree = prepared.tree
     b = tree.b
     o, d = b.Array3f(dr.detach(o)), b.Array3f(dr.detach(d))
-    n = dr.width(o)
+    # The widest input sets the batch: a camera's rays share one origin (width 1).
+    n = max(dr.width(o), dr.width(d), dr.width(tmin), dr.width(tmax), dr.width(active))
     # Opaque: a literal would be compiled into the kernel, and every new value would recompile it.
     tmin = _broadcast_opaque(b, tmin, n) if isinstance(tmin, (int, float)) else b.Float(dr.detach(tmin))
     tmax = _broadcast_opaque(b, tmax, n) if isinstance(tmax, (int, float)) else b.Float(dr.detach(tmax))

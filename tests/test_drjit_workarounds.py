@@ -114,3 +114,27 @@ def test_lanes_are_independent(model, seed):
         single = csg.trace(prepared, o[i:i + 1], d[i:i + 1])
         assert single.t[0] == wide.t[i] or (np.isnan(single.t[0]) and np.isnan(wide.t[i]))
         assert single.prim[0] == wide.prim[i]
+
+
+def test_rays_sharing_one_origin_are_independent_lanes():
+    """A camera's rays share one origin, a width-1 array: the kernel's registers must still be
+    full width. (They took the origin's width, and Dr.Jit 1.5's LLVM backend then mixed the
+    lanes' per-lane stacks: about 1 % of a Cheese's rays near hole rims hit the wrong surface,
+    and which ones depended on which other lanes were active.)"""
+    from mitsuba_csg.queries import rays_to_device, trace_rays
+    from mitsuba_csg.scenes import cheese
+    prepared = csg.prepare(cheese(20, seed=3))
+    b = prepared.tree.b
+    camera = np.array([4.0, -6.0, 3.0])
+    u, v = np.meshgrid(np.linspace(-1.3, 1.3, 160), np.linspace(-1.3, 1.3, 120))
+    targets = np.column_stack([u.ravel(), v.ravel(), 0.3 * u.ravel() - 0.2 * v.ravel()])
+    d = targets - camera
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    n = len(d)
+    alone = trace_rays(prepared, rays_to_device(np.tile(camera, (n, 1)), b), rays_to_device(d, b))
+    shared = b.Array3f(*[b.Float(float(c)) for c in camera])          # width 1
+    rng = np.random.default_rng(0)
+    for active in (np.ones(n, bool), rng.random(n) < 0.5, rng.random(n) < 0.1):
+        hits = trace_rays(prepared, shared, rays_to_device(d, b), active=b.Bool(active))
+        np.testing.assert_array_equal(np.asarray(hits.t)[active], np.asarray(alone.t)[active])
+        np.testing.assert_array_equal(np.asarray(hits.prim)[active], np.asarray(alone.prim)[active])

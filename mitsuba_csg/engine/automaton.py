@@ -116,7 +116,10 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
     shadow rays it does not need, would otherwise be traced in full).
     """
     b = tree.b
-    n = dr.width(o.x)
+    # Every lane's registers must be full width, whichever input is widest: with a width-1
+    # origin (a camera's rays share theirs) the loop state would be width 1, and Dr.Jit 1.5's
+    # LLVM backend then mixes lanes' per-lane stacks (tests/test_drjit_workarounds.py).
+    n = max(dr.width(o.x), dr.width(d.x), dr.width(tmin), dr.width(tmax), dr.width(active))
     o, d, k = scene_rays(tree, o, d)
     tmin, tmax = tmin * k, tmax * k
     inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
