@@ -176,6 +176,26 @@ def main():
                        f"{fmt(r.get('frozen_ratio'), '.1f')} | {fmt(r.get('vs_analytic'), '.2f')} | "
                        f"{r['mean_steps']:.1f} |")
         out.append("")
+    several = load("several_shapes")
+    if several:
+        m = several["machine"]
+        out += ["## Several csg shapes in one scene", "",
+                f"`./run.sh bench several_shapes.py` ({m['date']}, `{m['variant']}`): a grid of small Cheeses "
+                f"({several['rows'][0]['holes']} holes each) as separate csg shapes. Primary rays at "
+                f"{several['size']}: one traversal per shape, each up to the nearest hit so far (the integrators "
+                "before shapes were grouped), one traversal of the shapes' group (GROUP nodes over the shapes' "
+                "roots, `engine.grouping`; the integrators now), and the same geometry as one optimized union "
+                "(one shape). Then 1-spp frames (floor, sky, sun, max_depth 6): `csg_path` with the Cheeses as "
+                "separate shapes and as one, and Mitsuba's `path` on the manifold3d mesh of the union.",
+                "", "| shapes | per shape ms | grouped ms | one union ms | per shape / grouped | steps/ray per "
+                "shape (sum) | grouped | union | csg_path shapes s | csg_path one shape s | path on mesh s |",
+                "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in several["rows"]:
+            out.append(f"| {r['shapes']} | {r['per_shape_ms']:.1f} | {r['grouped_ms']:.1f} | {r['union_ms']:.1f} | "
+                       f"{r['per_shape_over_grouped']:.2f} | {r['per_shape_steps']:.1f} | {r['grouped_steps']:.1f} | "
+                       f"{r['union_steps']:.1f} | {fmt(r.get('csg_path_shapes_s'), '.3f')} | "
+                       f"{fmt(r.get('csg_path_union_s'), '.3f')} | {fmt(r.get('mesh_path_s'), '.3f')} |")
+        out.append("")
     if (common.ROOT / "docs" / "images" / "scaling.png").exists():
         out += ["## Scaling", "", "`./run.sh bench scaling.py`: optimized trace time against primitive count "
                 "(640x360) and against image size (Cheese-1000).", "", "![scaling](images/scaling.png)", ""]

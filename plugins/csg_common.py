@@ -4,10 +4,34 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_csg.engine.device import upload
+from mitsuba_csg.engine.grouping import group_trees
 from mitsuba_csg.engine.hit_geometry import attached_hit, surface_coordinates
-from mitsuba_csg.queries import trace_rays
+from mitsuba_csg.queries import Prepared, trace_rays
 
 from . import integrator_guard
+
+
+# Grouped trees of recent shape sets, keyed by the identity of the shapes' prepared trees
+# (which are kept alive with the entry, so the ids stay theirs): integrators build a
+# SceneCSG per render, and a group's upload would otherwise repeat every frame.
+_GROUP_CACHE: dict = {}
+_GROUP_CACHE_SIZE = 4
+
+
+def _grouped(prepared: list):
+    key = tuple(id(p) for p in prepared)
+    entry = _GROUP_CACHE.get(key)
+    if entry is None:
+        grouped = group_trees([p.flat for p in prepared])
+        tree = prepared[0].tree
+        traced = Prepared(grouped.flat, upload(grouped.flat, tree.b, options=tree.options))
+        entry = (list(prepared), traced, mi.UInt32(grouped.solid_of_prim().astype("uint32")),
+                 mi.UInt32(grouped.prim_offset.astype("uint32")))
+        if len(_GROUP_CACHE) >= _GROUP_CACHE_SIZE:
+            _GROUP_CACHE.pop(next(iter(_GROUP_CACHE)))
+        _GROUP_CACHE[key] = entry
+    return entry[1:]
 
 
 class SceneCSG:
@@ -32,6 +56,8 @@ class SceneCSG:
         self.shape_index = {id(s): i for i, s in enumerate(shapes)}
         # Embree costs tens of ms per frame even for tiny scenes: skip it if all is CSG.
         self.has_others = len(self.csg) < len(shapes)
+        # Grouped here, before any symbolic loop: buffers made inside a loop body belong to it.
+        self._traced()
 
     def intersect(self, scene: mi.Scene, ray: mi.Ray3f, active, attached: bool = False):
         """Nearest surface interaction over Mitsuba's shapes and the CSG shapes.
@@ -48,56 +74,70 @@ class SceneCSG:
             si.t = dr.inf
             si.wavelengths = ray.wavelengths
         bsdf = si.bsdf(ray)
-        csg_hit = mi.Bool(False)
-        csg_prim = mi.UInt32(0)
-        csg_shape = mi.UInt32(0)
+        if not self.csg:
+            return si, bsdf, mi.Bool(False), mi.UInt32(0), mi.UInt32(0)
+        prepared, solid_of_prim, prim_offset = self._traced()
+        hits = trace_rays(prepared, ray.o, ray.d, 0.0, dr.detach(dr.minimum(ray.maxt, si.t)), active=active)
+        csg_hit = mi.Bool(active & (hits.t < si.t) & dr.isfinite(hits.t))
+        t = mi.Float(hits.t)
+        n = mi.Normal3f(hits.normal)
+        prim = mi.UInt32(hits.prim)          # in the traced tree: all shapes' primitives one after another
+        p = ray(t)
+        if solid_of_prim is None:
+            solid, local_prim = mi.UInt32(0), prim
+        else:
+            solid = dr.gather(mi.UInt32, solid_of_prim, prim, csg_hit)
+            local_prim = prim - dr.gather(mi.UInt32, prim_offset, solid, csg_hit)
+        uv, dp_du, dp_dv = surface_coordinates(prepared.tree, hits.prim, hits.info, ray.o, ray.d,
+                                               dr.detach(dr.select(csg_hit, t, 0.0)), csg_hit)
+        shape_ptr = mi.ShapePtr(self.csg[0])
         for k, shape in enumerate(self.csg):
-            hits = trace_rays(shape.prepared, ray.o, ray.d, 0.0, dr.detach(dr.minimum(ray.maxt, si.t)), active=active)
-            closer = active & (hits.t < si.t) & dr.isfinite(hits.t)
-            closer = mi.Bool(closer)
-            t = mi.Float(hits.t)
-            n = mi.Normal3f(hits.normal)
-            prim = mi.UInt32(hits.prim)
-            p = ray(t)
+            on_k = csg_hit & (solid == k)
             if attached:
-                t, p, n = attached_hit(shape.primitive_to_world, shape.prepared.tree, prim, mi.UInt32(hits.info),
-                                       dr.select(closer, t, 0.0), ray.o, ray.d, closer)
-                t, p, n = mi.Float(t), mi.Point3f(p), mi.Normal3f(n)
-            uv, dp_du, dp_dv = surface_coordinates(shape.prepared.tree, hits.prim, hits.info,
-                                                   ray.o, ray.d, dr.detach(dr.select(closer, t, 0.0)), closer)
-            dp_du, dp_dv = mi.Vector3f(dp_du), mi.Vector3f(dp_dv)
-            csg_si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray.d))
-            csg_si.t = t
-            csg_si.p = p
-            csg_si.n = n
-            csg_si.uv = mi.Point2f(uv)
-            csg_si.dp_du, csg_si.dp_dv = dp_du, dp_dv
-            # The shading frame's tangent follows dp_du (Gram-Schmidt against n), as Mitsuba's
-            # shapes set it; where dp_du vanishes (a sphere's pole) any frame about n.
-            tangent = dp_du - n * dr.dot(n, dp_du)
-            usable = dr.squared_norm(tangent) > 1e-20 * dr.squared_norm(dp_du) + 1e-30
-            frame = mi.Frame3f(n)
-            s_axis = dr.select(usable, dr.normalize(tangent), frame.s)
-            csg_si.sh_frame = mi.Frame3f(s_axis, dr.cross(n, s_axis), n)
-            csg_si.wi = csg_si.to_local(-ray.d)
-            csg_si.prim_index = prim
-            csg_si.shape = mi.ShapePtr(shape)
-            csg_si.time = ray.time
-            csg_si.wavelengths = ray.wavelengths
-            si = dr.select(closer, csg_si, si)
-            bsdf = dr.select(closer, shape.prim_bsdf(prim, closer), bsdf)
-            csg_hit |= closer
-            csg_prim = dr.select(closer, prim, csg_prim)
-            csg_shape = dr.select(closer, mi.UInt32(k), csg_shape)
-        return si, bsdf, csg_hit, csg_prim, csg_shape
+                t_k, p_k, n_k = attached_hit(shape.primitive_to_world, shape.prepared.tree, local_prim,
+                                             mi.UInt32(hits.info), dr.select(on_k, t, 0.0), ray.o, ray.d, on_k)
+                t, p, n = (dr.select(on_k, mi.Float(t_k), t), dr.select(on_k, mi.Point3f(p_k), p),
+                           dr.select(on_k, mi.Normal3f(n_k), n))
+            bsdf = dr.select(on_k, shape.prim_bsdf(local_prim, on_k), bsdf)
+            shape_ptr = dr.select(on_k, mi.ShapePtr(shape), shape_ptr)
+        dp_du, dp_dv = mi.Vector3f(dp_du), mi.Vector3f(dp_dv)
+        csg_si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray.d))
+        csg_si.t = t
+        csg_si.p = p
+        csg_si.n = n
+        csg_si.uv = mi.Point2f(uv)
+        csg_si.dp_du, csg_si.dp_dv = dp_du, dp_dv
+        # The shading frame's tangent follows dp_du (Gram-Schmidt against n), as Mitsuba's
+        # shapes set it; where dp_du vanishes (a sphere's pole) any frame about n.
+        tangent = dp_du - n * dr.dot(n, dp_du)
+        usable = dr.squared_norm(tangent) > 1e-20 * dr.squared_norm(dp_du) + 1e-30
+        frame = mi.Frame3f(n)
+        s_axis = dr.select(usable, dr.normalize(tangent), frame.s)
+        csg_si.sh_frame = mi.Frame3f(s_axis, dr.cross(n, s_axis), n)
+        csg_si.wi = csg_si.to_local(-ray.d)
+        csg_si.prim_index = local_prim
+        csg_si.shape = shape_ptr
+        csg_si.time = ray.time
+        csg_si.wavelengths = ray.wavelengths
+        si = dr.select(csg_hit, csg_si, si)
+        return si, bsdf, csg_hit, dr.select(csg_hit, local_prim, 0), dr.select(csg_hit, solid, 0)
 
     def occluded(self, scene: mi.Scene, ray: mi.Ray3f, active):
         """Shadow test of `ray` (up to ray.maxt) against Mitsuba's shapes and the CSG shapes."""
         blocked = scene.ray_test(ray, active) if self.has_others else mi.Bool(False)
-        for shape in self.csg:
-            hits = trace_rays(shape.prepared, ray.o, ray.d, 0.0, dr.detach(ray.maxt), active=active & ~blocked)
+        if self.csg:
+            hits = trace_rays(self._traced()[0], ray.o, ray.d, 0.0, dr.detach(ray.maxt), active=active & ~blocked)
             blocked |= active & mi.Bool(dr.isfinite(hits.t))
         return blocked
+
+    def _traced(self):
+        """(prepared tree, solid of each primitive, first primitive of each solid) to trace:
+        a lone shape's own tree, or all shapes grouped into one (`engine.grouping`), so that a
+        ray runs one traversal, not one per shape. The group is rebuilt when a shape's tree
+        changes (a parameter update replaces `shape.prepared`)."""
+        if len(self.csg) <= 1:
+            return (self.csg[0].prepared if self.csg else None), None, None
+        return _grouped([shape.prepared for shape in self.csg])
 
 
 def check_depth_types(props, name: str) -> None:

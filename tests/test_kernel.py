@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import itertools
 
+import manifold3d
 import numpy as np
 import pytest
 from hypothesis import given
@@ -12,6 +13,7 @@ import mitsuba_csg as csg
 import reference as ref
 from agreement import compare
 from mitsuba_csg.engine.device import TraversalOptions
+from mitsuba_csg.engine.grouping import group_trees
 from mitsuba_csg.scenes import cheese
 from strategies import make_points, make_rays, models
 
@@ -476,3 +478,61 @@ def test_inactive_lanes_do_no_work_and_miss():
     np.testing.assert_array_equal(t_part[mask], t_full[mask])
     assert np.all(np.isinf(t_part[~mask])) and np.all(np.asarray(part.steps)[~mask] == 0)
     assert np.all(np.asarray(part.prim)[~mask] == 0xFFFFFFFF) and np.isfinite(t_full[~mask]).any()
+
+
+# ---- Several solids in one tree (engine.grouping) ----
+
+@pytest.mark.parametrize("traversal", TRAVERSALS)
+@given(solids=st.lists(models(max_leaves=5), min_size=2, max_size=4), seed=st.integers(0, 2**31),
+       optimized=st.booleans())
+def test_grouped_solids_give_the_nearest_surface_of_any(solids, seed, optimized, traversal):
+    """One traversal of the group finds, per ray, the nearest first hit among the solids, as
+    the reference traced solid by solid says: which solid, t, normal and entering."""
+    flats = [csg.prepare(m, optimize=optimized).flat for m in solids]
+    grouped = group_trees(flats)
+    hits = csg.trace(csg.prepare(grouped.flat, traversal=TRAVERSALS[traversal]), *make_rays(seed, 96))
+    o, d = make_rays(seed, 96)
+    firsts = [ref.first_hit(m, o, d) for m in solids]
+    t_all = np.stack([f[0] for f in firsts])
+    stable = np.all([ref.stable_mask(m, o, d) for m in solids], axis=0)
+    # The nearest solid must be clear: the runner-up's surface lies further than the tolerance.
+    ranked = np.sort(t_all, axis=0)
+    length = np.maximum(1.0, np.linalg.norm(o, axis=1)) / np.linalg.norm(d, axis=1)
+    with np.errstate(invalid="ignore"):         # inf - inf where two solids are missed
+        stable &= ~np.isfinite(ranked[0]) | (ranked[1] - ranked[0] > 1e-4 * length)
+    assert hits.unfinished == 0
+    nearest = np.argmin(t_all, axis=0)
+    t_ref = t_all[nearest, np.arange(len(o))]
+    hit = np.isfinite(t_ref)
+    assert np.array_equal(np.isfinite(hits.t[stable]), hit[stable])
+    s = np.flatnonzero(stable & hit)
+    np.testing.assert_allclose(hits.t[s], t_ref[s], rtol=1e-4, atol=1e-4 * length[s].max(initial=1.0))
+    solid = np.searchsorted(grouped.prim_offset, hits.prim[s], side="right") - 1
+    assert np.array_equal(solid, nearest[s])
+    local = hits.prim[s] - grouped.prim_offset[solid]
+    for k, (_, prim_ref, n_ref, enter_ref) in enumerate(firsts):
+        on_k = solid == k
+        assert np.array_equal(local[on_k], prim_ref[s][on_k])
+        assert np.all(np.einsum("ij,ij->i", hits.normal[s][on_k], n_ref[s][on_k]) > 0.999)
+        assert np.array_equal(hits.entering[s][on_k], enter_ref[s][on_k])
+
+
+def test_a_group_of_cheeses_with_mesh_leaves_agrees_with_each_alone():
+    """Solids of every kind of record (meshes with their BVHs, convex planes) keep their own
+    planes and BVH nodes once concatenated: the group's hits on rays that see one solid only
+    are that solid's own hits."""
+    mesh = csg.Mesh.from_manifold(manifold3d.Manifold.cylinder(1.0, 0.4, 0.4, 24)).translate((0, 0, -0.5))
+    solids = [cheese(40, seed=1), csg.Prism(6, 0.6, 1.0).translate((3, 0, 0)) - mesh.translate((3, 0, 0)),
+              mesh.translate((0, 3, 0)) | csg.Box(0.5).translate((0, 3, 0.8)), cheese(30, seed=2).translate((3, 3, 0))]
+    grouped = group_trees([csg.prepare(m).flat for m in solids])
+    prepared = csg.prepare(grouped.flat)
+    rng = np.random.default_rng(4)
+    for k, (m, centre) in enumerate(zip(solids, [(0, 0), (3, 0), (0, 3), (3, 3)])):
+        # Straight down onto solid k only: no other solid lies under these rays.
+        o = np.column_stack([rng.uniform(-0.7, 0.7, (300, 2)) + centre, np.full(300, 5.0)])
+        d = np.tile([0.0, 0.0, -1.0], (300, 1))
+        alone, group = csg.trace(m, o, d), csg.trace(prepared, o, d)
+        hit = np.isfinite(alone.t)
+        assert hit.mean() > 0.2
+        np.testing.assert_allclose(group.t, alone.t, rtol=1e-5, atol=1e-5)
+        np.testing.assert_array_equal(group.prim[hit] - grouped.prim_offset[k], alone.prim[hit])

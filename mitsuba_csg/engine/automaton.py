@@ -175,6 +175,10 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         second = state == GOTO_R_FRESH
         cls_first = K.info_class(info_l)
         fixes = dr.select(kind == UNION, cls_first == EXIT, cls_first != EXIT)
+        if dr.hint(tree.has_groups, mode="scalar"):
+            # A group's children are separate solids: none fixes what the other shows.
+            group = K.flags_group(flags)
+            fixes &= ~group
         if tree.options.skip_to_sibling:
             t_start = dr.select(second & fixes, dr.maximum(t_start, t_l), t_start)
         child_bound = t_bound
@@ -236,6 +240,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         # L - R = L & ~R: complement R's class (a miss of R is an exit at infinity)
         cls_r = dr.select(is_diff, _complement_class(cls_r), cls_r)
         table_op = dr.select(kind == UNION, 0, 1)
+        if dr.hint(tree.has_groups, mode="scalar"):
+            table_op = dr.select(group, K.GROUP_ROW, table_op)
         action = dr.gather(b.UInt32, tree.table, table_op * 9 + cls_l * 3 + cls_r, classify)
         # Ties: a return needs its hit closer by more than the tie window, except
         # RET_CLOSER. Where an enter of one child meets an exit of the other within it

@@ -56,7 +56,7 @@ class KernelTree:
     planes: object          # Float, 4 per plane (convex faces and mesh triangles)
     triangles: object       # Float, 12 per plane row (mesh triangles; zeros for convex planes)
     mesh_nodes: object      # Float, 8 per mesh BVH node (layout.MESH_NODE_FLOATS)
-    table: object           # UInt32 state table, 18 entries (layout.STATE_TABLE)
+    table: object           # UInt32 state tables, 27 entries (layout.TABLE_ARRAY: union, intersection, group)
     root: int
     root_is_leaf: bool
     stack_size: int
@@ -67,6 +67,7 @@ class KernelTree:
     centre: tuple           # world -> scene frame: x' = (x - centre) * inv_scale
     inv_scale: float
     has_meshes: bool        # the kernel includes the mesh BVH walk only where there are mesh leaves
+    has_groups: bool = False  # the kernel tests the GROUP flag only where there are group nodes
     options: TraversalOptions = field(default_factory=TraversalOptions)
 
 
@@ -77,6 +78,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     kind, neg = flat.node_kind.copy(), flat.node_negative.copy()
     left, right, parent = flat.node_left.copy(), flat.node_right.copy(), flat.node_parent.copy()
     lower, upper = flat.node_lower.copy(), flat.node_upper.copy()
+    group = np.zeros(len(kind), bool) if flat.node_group is None else flat.node_group.copy()
     root_is_leaf = bool(kind[flat.root] == K.LEAF)
     if root_is_leaf:
         # The automaton starts at an operation: root' = union(leaf, nothing), where the
@@ -84,6 +86,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         n = len(kind)
         kind = np.concatenate([kind, [K.UNION, K.LEAF]])
         neg = np.concatenate([neg, [False, False]])
+        group = np.concatenate([group, [False, False]])
         left = np.concatenate([left, [flat.root, 0]])
         right = np.concatenate([right, [n + 1, -1]])
         parent = np.concatenate([parent, [-1, n]])
@@ -112,7 +115,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     box = np.hstack([lower - pad, zeros, upper + pad, zeros])
     box[empty] = np.nan
     order, left_high = _child_order(kind, left, right, lower, upper)
-    flags = K.node_flags(kind.astype(np.uint32), neg.astype(np.uint32), order, left_high)
+    flags = K.node_flags(kind.astype(np.uint32), neg.astype(np.uint32), order, left_high, group.astype(np.uint32))
     node_record = np.stack([flags, left, np.where(right < 0, 0, right), np.where(parent < 0, 0, parent)], 1)
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
     # world -> canonical after scene -> world (x = centre + x' / inv_scale)
@@ -148,7 +151,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         root=int(root), root_is_leaf=root_is_leaf, stack_size=stack_size_class(height), num_nodes=n_nodes,
         num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent,
         centre=tuple(float(c) for c in centre), inv_scale=float(inv_scale),
-        has_meshes=bool(np.any(flat.prim_shape == K.MESH)), options=options or TraversalOptions())
+        has_meshes=bool(np.any(flat.prim_shape == K.MESH)), has_groups=bool(np.any(group)), options=options or TraversalOptions())
 
 
 def _scene_frame(lower, upper) -> tuple[np.ndarray, float]:

@@ -13,6 +13,8 @@ Node flags word (one per flat-tree node)::
               boxes lie furthest apart (NO_ORDER: none); a ray searches first the child
               that lies first along its direction on that axis
     bit  5    LEFT_HIGH: the left child's box centre is the higher one on the ORDER axis
+    bit  6    GROUP: a union node that joins separate solids (`engine.grouping`): its next
+              event is the nearer of its children's, whatever their classes
 
 Hit info word (one per returned hit)::
 
@@ -61,11 +63,16 @@ ORDER_SHIFT = 3
 ORDER_MASK = 0x3
 NO_ORDER = 3
 LEFT_HIGH_BIT = 0x20
+GROUP_BIT = 0x40
 
 
-def node_flags(kind, negative, order=NO_ORDER, left_high=0):
+def node_flags(kind, negative, order=NO_ORDER, left_high=0, group=0):
     """The flags word of nodes (numpy integer and bool arrays)."""
-    return kind | (negative << 2) | (order << ORDER_SHIFT) | (left_high << 5)
+    return kind | (negative << 2) | (order << ORDER_SHIFT) | (left_high << 5) | (group << 6)
+
+
+def flags_group(flags):
+    return (flags & GROUP_BIT) != 0
 
 
 def flags_order(flags):
@@ -191,5 +198,10 @@ STATE_TABLE = {
                    (_X, _E): RET_R_ELSE_LOOP_L, (_X, _X): RET_CLOSER, (_X, _M): RET_MISS,
                    (_M, _E): RET_MISS, (_M, _X): RET_MISS, (_M, _M): RET_MISS},
 }
-TABLE_ARRAY = np.array([[STATE_TABLE[op][(cl, cr)] for cl in range(3) for cr in range(3)]
-                        for op in (UNION, INTERSECTION)], dtype=np.uint32).ravel()
+# A group's next event is its nearer child's: separate solids do not combine (a miss is at
+# infinity, so the closer of a hit and a miss is the hit). Row 2 of the flat table.
+GROUP_TABLE = {(cl, cr): RET_CLOSER for cl in (_E, _X, _M) for cr in (_E, _X, _M)}
+GROUP_ROW = 2
+TABLE_ARRAY = np.array([[table[(cl, cr)] for cl in range(3) for cr in range(3)]
+                        for table in (STATE_TABLE[UNION], STATE_TABLE[INTERSECTION], GROUP_TABLE)],
+                       dtype=np.uint32).ravel()

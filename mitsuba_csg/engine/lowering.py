@@ -63,6 +63,9 @@ class FlatTree:
     mesh_first: np.ndarray = None   # (K,) leaf: first triangle, relative to the mesh's plane start
     mesh_count: np.ndarray = None   # (K,) leaf: triangle count; 0: inner node
     root: int = 0
+    # per node: a GROUP node (engine.grouping) joins separate solids: its hit is the nearer of
+    # its children's; None where the tree has none
+    node_group: np.ndarray = None
 
     @property
     def height(self) -> int:
