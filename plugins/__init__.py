@@ -29,10 +29,14 @@ def register() -> None:
     mi.register_integrator("csg_aov", lambda props: aov_cls(props))
     mi.register_integrator("csg_volpath", lambda props: volpath_cls(props))
     if variant.startswith(("llvm_ad", "cuda_ad")):
-        from . import csg_prb
+        from . import csg_edges, csg_prb, csg_prb_projective
         if len(_modules_variant) > 1:
+            csg_edges = importlib.reload(csg_edges)
             csg_prb = importlib.reload(csg_prb)
+            csg_prb_projective = importlib.reload(csg_prb_projective)
         prb_cls = csg_prb.CSGPRBIntegrator
+        projective_cls = csg_prb_projective.CSGPRBProjectiveIntegrator
         mi.register_integrator("csg_prb", lambda props: prb_cls(props))
+        mi.register_integrator("csg_prb_projective", lambda props: projective_cls(props))
     integrator_guard.install(mi)
     _registered_for.add(variant)

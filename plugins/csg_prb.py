@@ -36,7 +36,8 @@ class CSGPRBIntegrator(RBIntegrator):
     Not differentiated: visibility changes, i.e. silhouettes of CSG shapes, edges where the
     visible primitive changes, and shadow boundaries (like Mitsuba's `prb`, which also
     ignores them); the motion of the next path vertex is not propagated into the previous
-    one. Gradients of pixels straddling such edges are therefore biased.
+    one. Gradients of pixels straddling such edges are therefore biased; `csg_prb_projective`
+    adds the boundaries the camera sees.
 
     .. code-block:: python
 

@@ -21,7 +21,8 @@ import threading
 
 from mitsuba_csg.errors import CSGError
 
-CSG_INTEGRATORS = "csg_path (path tracing), csg_volpath (media), csg_prb (differentiable) or csg_aov (buffers)"
+CSG_INTEGRATORS = ("csg_path (path tracing), csg_volpath (media), csg_prb (differentiable), csg_prb_projective "
+                   "(differentiable, with visibility) or csg_aov (buffers)")
 
 
 _BOUND_BASES = {"Integrator", "SamplingIntegrator", "MonteCarloIntegrator", "AdjointIntegrator", "Shape", "Mesh"}
@@ -59,9 +60,10 @@ def grouped_csg_shapes(mi, scene) -> list:
 
 
 # What to use instead of a Mitsuba integrator, by the words in its class name.
-_COUNTERPARTS = (("Volpath", "csg_volpath"), ("Volumetric", "csg_volpath"), ("DirectProjective", "csg_prb"),
-                 ("Direct", "csg_path with max_depth 2"), ("Depth", "csg_aov"), ("AOV", "csg_aov"),
-                 ("PRB", "csg_prb"), ("Projective", "csg_prb"), ("Path", "csg_path"))
+_COUNTERPARTS = (("Volpath", "csg_volpath"), ("Volumetric", "csg_volpath"),
+                 ("DirectProjective", "csg_prb_projective with max_depth 2"), ("Direct", "csg_path with max_depth 2"),
+                 ("Depth", "csg_aov"), ("AOV", "csg_aov"), ("Projective", "csg_prb_projective"), ("PRB", "csg_prb"),
+                 ("Path", "csg_path"))
 
 
 def counterpart(name: str) -> str:

@@ -750,7 +750,8 @@ def test_mitsubas_own_integrators_refuse_a_scene_with_csg(name):
         mi.render(scene, integrator=integrator)
     instead = {"path": "csg_path", "direct": "csg_path with max_depth 2", "volpath": "csg_volpath",
                "volpathmis": "csg_volpath", "prbvolpath": "csg_volpath", "prb": "csg_prb", "prb_basic": "csg_prb",
-               "prb_projective": "csg_prb", "direct_projective": "csg_prb", "depth": "csg_aov", "aov": "csg_aov"}
+               "prb_projective": "csg_prb_projective", "direct_projective": "csg_prb_projective with max_depth 2",
+               "depth": "csg_aov", "aov": "csg_aov"}
     if name in instead:
         assert f"Use {instead[name]} (" in str(info.value)
     with pytest.raises(csg.CSGError, match="cannot see the csg shape 'cheese_model'"):
@@ -762,7 +763,7 @@ def test_the_csg_integrators_render_the_example_scene_with_its_model():
     shapes = [s.id() for s in scene.shapes()]
     centre = mi.render(scene, integrator=mi.load_dict({"type": "csg_aov", "aovs": "s:shape_index"}))
     assert shapes[int(np.array(centre)[9, 16, -1])] == "cheese_model"      # the model is where the camera looks
-    for name in ("csg_path", "csg_prb"):
+    for name in ("csg_path", "csg_prb", "csg_prb_projective"):
         image = np.array(mi.render(scene, integrator=mi.load_dict({"type": name})))
         assert np.isfinite(image).all() and image.mean() > 0.05
 

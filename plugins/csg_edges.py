@@ -1,0 +1,270 @@
+"""The discontinuity curves of csg shapes, for the primarily visible boundary derivative.
+
+Where a primitive's parameter moves a curve across which the image jumps (a silhouette, a
+sharp edge of a leaf, the curve where two leaves' surfaces meet), the image changes by the
+radiance difference across the curve times the curve's motion normal to itself in the
+image. `csg_prb_projective` samples points on these curves and estimates that term; this
+module lists the curves of a scene's csg shapes and evaluates points on them with Dr.Jit's
+AD, so that a point moves with the shapes' `primitive_to_world`.
+
+Curves, each a map u in [0, 1) -> a point (a parameter value slides the point along its
+curve, never across it, so only the motion normal to the curve counts, as it must):
+
+- SPHERE_SILHOUETTE: the contour of a sphere leaf (an ellipsoid after its transform) seen
+  from the camera: in the leaf's canonical frame, the unit sphere's circle of contact of the
+  cone from the camera.
+- CONE_SILHOUETTE: the two contour lines of a cone or cylinder side (one curve per line).
+- CIRCLE: a fixed circle of a leaf's canonical frame: the rims of cones and cylinders.
+- SEGMENT: a box edge (corners of the canonical cube).
+- SPHERE_PLANE: where a sphere leaf meets the plane of a box face (a CSG edge of holes cut
+  into boxes), in the sphere's canonical frame.
+- SPHERE_SPHERE: where two sphere leaves with uniform scales meet.
+- CONE_PLANE: where a cone or cylinder side meets the plane of a box face, in closed form
+  in the cone's canonical frame (z as a function of the angle, or the angle as a function
+  of z on two branches when the plane is nearer the axis's direction).
+- CAP_PLANE: the chord where the plane of a box face crosses a cone or cylinder cap.
+
+Each is listed where it may exist (the leaves' boxes overlap); whether a point is on the
+boundary of the CSG solid, and visible, is left to the radiance difference itself, which
+is zero across a curve that is not an image discontinuity. Curves of the other leaves
+(tori, quadrics, convex polyhedra, meshes) and the general curves where a cylinder, cone or
+torus meets another leaf are not listed yet (`docs/plugins.md` says which derivatives are
+missing).
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mitsuba_csg.engine import layout as K
+
+SPHERE_SILHOUETTE, CONE_SILHOUETTE, CIRCLE, SEGMENT, SPHERE_PLANE, SPHERE_SPHERE, CONE_PLANE, CAP_PLANE = range(8)
+# `extra` of the plane curves: the box face (0-5), and for CONE_PLANE whether the curve is
+# parametrized by height (planes nearer the axis's direction; two branches) rather than by
+# angle, for CAP_PLANE which cap.
+FACE_MASK, BY_HEIGHT, BRANCH, TOP_CAP = 0x7, 0x8, 0x10, 0x8
+
+# Box edges: pairs of canonical corners (index bits = x, y, z sign).
+_BOX_EDGES = [(a, a | (1 << axis)) for axis in range(3) for a in range(8) if not a & (1 << axis)]
+
+
+class Curves:
+    """The curves of one csg shape: per curve its kind, leaves a and b, an extra int (edge,
+    face, branch) and a sampling weight (about its length in the image)."""
+
+    def __init__(self, shape, camera: np.ndarray):
+        flat = shape.prepared.flat
+        to_world = flat.prim_to_world
+        centre = to_world[:, :3, 3]
+        scale = np.linalg.norm(to_world[:, :3, :3], axis=1)           # column lengths per primitive
+        distance = np.maximum(np.linalg.norm(centre - camera, axis=1), 1e-9)
+        spheres = np.flatnonzero(flat.prim_shape == K.SPHERE)
+        boxes = np.flatnonzero(flat.prim_shape == K.BOX)
+        cones = np.flatnonzero(flat.prim_shape == K.CONE)
+        parts = []                                  # (kind, a, b, extra, length)
+
+        def add(kind, a, b, extra, length):
+            a = np.atleast_1d(a)
+            parts.append((np.full(len(a), kind), a, np.broadcast_to(b, a.shape), np.broadcast_to(extra, a.shape),
+                          np.broadcast_to(length, a.shape)))
+
+        add(SPHERE_SILHOUETTE, spheres, spheres, 0, 2 * np.pi * scale[spheres].max(axis=1))
+        r = flat.prim_param
+        for k in (0, 1):
+            side = np.linalg.norm(np.einsum("pij,pj->pi", to_world[cones, :3, :3],
+                                            np.column_stack([r[cones, 1] - r[cones, 0], 0 * cones, 2 + 0 * cones])),
+                                  axis=1)
+            add(CONE_SILHOUETTE, cones, cones, k, side)
+            rim = cones[r[cones, k] > 0]
+            add(CIRCLE, rim, rim, k, 2 * np.pi * r[rim, k] * scale[rim, :2].max(axis=1))
+        corners = np.stack([_box_corners(to_world[p]) for p in boxes]) if len(boxes) else np.zeros((0, 8, 3))
+        for e, (i, j) in enumerate(_BOX_EDGES):
+            add(SEGMENT, boxes, boxes, e, np.linalg.norm(corners[:, i] - corners[:, j], axis=1))
+
+        def overlapping(first, second):
+            """Pairs (p, q) of the two index sets whose boxes overlap."""
+            if not len(first) or not len(second):
+                return np.zeros(0, np.int64), np.zeros(0, np.int64)
+            lo, hi = flat.prim_lower, flat.prim_upper
+            hit = np.all((lo[first, None] <= hi[None, second]) & (lo[None, second] <= hi[first, None]), axis=2)
+            i, j = np.nonzero(hit)
+            return first[i], second[j]
+
+        p, q = overlapping(spheres, boxes)
+        for face in range(6):
+            add(SPHERE_PLANE, p, q, face, 2 * np.pi * scale[p].max(axis=1))
+        p, q = overlapping(spheres, spheres)
+        uniform = np.ptp(scale, axis=1) <= 1e-6 * scale.max(axis=1)
+        keep = (q > p) & uniform[p] & uniform[q]
+        p, q = p[keep], q[keep]
+        add(SPHERE_SPHERE, p, q, 0, 2 * np.pi * np.minimum(scale[p].max(axis=1), scale[q].max(axis=1)))
+        p, q = overlapping(cones, boxes)
+        size = scale[p].max(axis=1)
+        for face in range(6):
+            axis, sign = face >> 1, (1.0 if face & 1 else -1.0)
+            # the face's normal in the cone's frame: nearer the axis's direction, parametrize by angle
+            normal = sign * np.einsum("pk,pkj->pj", np.linalg.inv(to_world[q])[:, axis, :3], to_world[p, :3, :3])
+            flat_ish = np.abs(normal[:, 2]) >= np.linalg.norm(normal[:, :2], axis=1)
+            add(CONE_PLANE, p[flat_ish], q[flat_ish], face, 2 * np.pi * size[flat_ish])
+            for branch in (0, BRANCH):
+                add(CONE_PLANE, p[~flat_ish], q[~flat_ish], face | BY_HEIGHT | branch, 2 * size[~flat_ish])
+            for cap, k in ((0, 0), (TOP_CAP, 1)):
+                crossing = (r[p, k] > 0) & (np.linalg.norm(normal[:, :2], axis=1) > 1e-9 * np.abs(normal[:, 2]))
+                add(CAP_PLANE, p[crossing], q[crossing], face | cap, 2 * r[p[crossing], k] * size[crossing])
+        kind, a, b, extra, length = (np.concatenate(column) for column in zip(*parts))
+        self.count = len(kind)
+        self.kind, self.a, self.b = kind.astype(np.uint32), a.astype(np.uint32), b.astype(np.uint32)
+        self.extra = extra.astype(np.uint32)
+        self.weight = length / distance[a] if self.count else np.zeros(0)
+
+
+def _box_corners(m):
+    signs = np.array([[1 if i & 1 else -1, 1 if i & 2 else -1, 1 if i & 4 else -1] for i in range(8)], float)
+    return signs @ m[:3, :3].T + m[:3, 3]
+
+
+def _rows(to_world, prim, active):
+    """(M, t) of canonical -> world for primitives, with AD: `to_world` holds 12 per primitive."""
+    rows = [dr.gather(mi.Vector4f, to_world, prim * 3 + r, active) for r in range(3)]
+    m = mi.Matrix3f(rows[0].x, rows[0].y, rows[0].z, rows[1].x, rows[1].y, rows[1].z,
+                    rows[2].x, rows[2].y, rows[2].z)
+    return m, mi.Vector3f(rows[0].w, rows[1].w, rows[2].w)
+
+
+def _basis(w):
+    """Two unit vectors orthogonal to unit `w` and to each other (AD-attached to w)."""
+    helper = dr.select(dr.abs(w.x) < 0.9, mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0))
+    u1 = dr.normalize(dr.cross(w, helper))
+    return u1, dr.cross(w, u1)
+
+
+def _circle(centre, radius, w, phi):
+    """Point and tangent (d/dphi) of the circle about unit axis w."""
+    u1, u2 = _basis(w)
+    c, s = dr.cos(phi), dr.sin(phi)
+    return centre + radius * (c * u1 + s * u2), radius * (c * u2 - s * u1)
+
+
+def evaluate(kind, extra, m_a, t_a, m_b, t_b, params, camera, u):
+    """(world point, world tangent dx/du, valid) of curves at u in [0, 1), attached to the
+    matrices (m, t) of the curves' leaves; `params` the cone radii of leaf a."""
+    phi = dr.two_pi * u
+    inv_a = dr.rcp(m_a)
+    cam = inv_a @ (camera - t_a)                   # the camera in leaf a's canonical frame
+    valid = mi.Bool(True)
+    zero = mi.Vector3f(0)
+
+    # Sphere contour: |x| = 1 and x . cam = 1: centre cam / |cam|^2, radius sqrt(1 - 1 / |cam|^2).
+    s2 = dr.squared_norm(cam)
+    x_sil, dx_sil = _circle(cam / s2, dr.safe_sqrt(1 - dr.rcp(s2)), dr.normalize(cam), phi)
+    valid_sil = s2 > 1
+
+    # Cone side contour: cos(phi - phi0) = (a + b cam_z) / |cam_xy| at r(z) = a + b z.
+    r0, r1 = params
+    a_, b_ = 0.5 * (r0 + r1), 0.5 * (r1 - r0)
+    rho = dr.sqrt(cam.x * cam.x + cam.y * cam.y)
+    cos_d = (a_ + b_ * cam.z) / rho
+    ang = dr.atan2(cam.y, cam.x) + dr.select(extra == 0, 1.0, -1.0) * dr.safe_acos(cos_d)
+    z = 2 * u - 1
+    radial = mi.Vector3f(dr.cos(ang), dr.sin(ang), 0)
+    x_cone = radial * (a_ + b_ * z) + mi.Vector3f(0, 0, z)
+    dx_cone = radial * (2 * b_) + mi.Vector3f(0, 0, 2)
+    valid_cone = (rho > 0) & (dr.abs(cos_d) < 1)
+
+    # Cone rim: the circle z = -1 (extra 0) or +1 (extra 1).
+    rim_z = dr.select(extra == 0, -1.0, 1.0)
+    x_rim, dx_rim = _circle(mi.Vector3f(0, 0, rim_z), dr.select(extra == 0, r0, r1), mi.Vector3f(0, 0, 1), phi)
+
+    # Box edge: between two canonical corners.
+    corner_i = dr.gather(mi.UInt32, mi.UInt32([i for i, _ in _BOX_EDGES]), extra)
+    corner_j = dr.gather(mi.UInt32, mi.UInt32([j for _, j in _BOX_EDGES]), extra)
+
+    def corner(c):
+        return mi.Vector3f(dr.select((c & 1) != 0, 1.0, -1.0), dr.select((c & 2) != 0, 1.0, -1.0),
+                           dr.select((c & 4) != 0, 1.0, -1.0))
+    ci, cj = corner(corner_i), corner(corner_j)
+    x_seg, dx_seg = dr.lerp(ci, cj, u), cj - ci
+
+    # Sphere meets the plane of box b's face: s x_axis = 1 in b's frame; n' . x = d' in a's.
+    face = extra & FACE_MASK
+    axis, sign = face >> 1, dr.select((face & 1) != 0, 1.0, -1.0)
+    inv_b = dr.rcp(m_b)
+    inv_b_row = mi.Vector3f(*[dr.select(axis == 0, inv_b[0][k], dr.select(axis == 1, inv_b[1][k], inv_b[2][k]))
+                              for k in range(3)])
+    n_plane = sign * (m_a.T @ inv_b_row)
+    d_plane = 1 - sign * dr.dot(inv_b_row, t_a - t_b)
+    n2 = dr.squared_norm(n_plane)
+    x_sp, dx_sp = _circle(n_plane * (d_plane / n2), dr.safe_sqrt(1 - d_plane * d_plane / n2),
+                          dr.normalize(n_plane), phi)
+    valid_sp = d_plane * d_plane < n2
+
+    # A cone side meets the same plane (now in the cone's frame, leaf a): a point at angle
+    # phi and height z has radius a + b z, so n . x = d' is linear in z for a given phi.
+    by_height = (extra & BY_HEIGHT) != 0
+    c_phi = n_plane.x * dr.cos(phi) + n_plane.y * dr.sin(phi)
+    dc_phi = -n_plane.x * dr.sin(phi) + n_plane.y * dr.cos(phi)
+    denom = b_ * c_phi + n_plane.z
+    z_a = (d_plane - a_ * c_phi) / denom
+    dz_a = (-a_ * dc_phi * denom - (d_plane - a_ * c_phi) * b_ * dc_phi) / (denom * denom)
+    radial_a = mi.Vector3f(dr.cos(phi), dr.sin(phi), 0)
+    x_ca = radial_a * (a_ + b_ * z_a) + mi.Vector3f(0, 0, z_a)
+    dx_ca = dr.two_pi * (mi.Vector3f(-dr.sin(phi), dr.cos(phi), 0) * (a_ + b_ * z_a)
+                         + radial_a * (b_ * dz_a) + mi.Vector3f(0, 0, dz_a))
+    #   by height: |n_xy| cos(phi - phi0) = (d' - n_z z) / (a + b z), on two branches.
+    n_xy = dr.sqrt(n_plane.x * n_plane.x + n_plane.y * n_plane.y)
+    z_h = 2 * u - 1
+    cos_h = (d_plane - n_plane.z * z_h) / ((a_ + b_ * z_h) * n_xy)
+    side = dr.select((extra & BRANCH) != 0, -1.0, 1.0)
+    ang_h = dr.atan2(n_plane.y, n_plane.x) + side * dr.safe_acos(cos_h)
+    radial_h = mi.Vector3f(dr.cos(ang_h), dr.sin(ang_h), 0)
+    x_ch = radial_h * (a_ + b_ * z_h) + mi.Vector3f(0, 0, z_h)
+    # d(cos_h)/dz, then d(angle)/dz = -side * dcos / sin(angle - phi0)
+    dcos = (-n_plane.z * (a_ + b_ * z_h) - (d_plane - n_plane.z * z_h) * b_) / ((a_ + b_ * z_h) ** 2 * n_xy)
+    dang = -side * dcos * dr.rsqrt(dr.maximum(1 - cos_h * cos_h, 1e-12))
+    dx_ch = 2 * (mi.Vector3f(-dr.sin(ang_h), dr.cos(ang_h), 0) * ((a_ + b_ * z_h) * dang)
+                 + radial_h * b_ + mi.Vector3f(0, 0, 1))
+    x_cp = dr.select(by_height, x_ch, x_ca)
+    dx_cp = dr.select(by_height, dx_ch, dx_ca)
+    valid_cp = dr.select(by_height, dr.abs(cos_h) < 1, (dr.abs(z_a) <= 1) & (denom != 0))
+
+    # A cap (z = -1 or +1, radius r0 or r1) crossed by the plane: a chord.
+    top = (extra & TOP_CAP) != 0
+    cap_z = dr.select(top, 1.0, -1.0)
+    cap_r = dr.select(top, r1, r0)
+    e = d_plane - n_plane.z * cap_z
+    foot = mi.Vector3f(n_plane.x, n_plane.y, 0) * (e / (n_xy * n_xy)) + mi.Vector3f(0, 0, cap_z)
+    along = mi.Vector3f(-n_plane.y, n_plane.x, 0) / n_xy
+    half = dr.safe_sqrt(cap_r * cap_r - e * e / (n_xy * n_xy))
+    x_cap, dx_cap = foot + along * (half * (2 * u - 1)), along * (2 * half)
+    valid_cap = (cap_r * cap_r * n_xy * n_xy > e * e) & (n_xy > 0)
+
+    # Two spheres with uniform scales, in world space (then mapped to a's frame, as the rest).
+    r_a, r_b = dr.norm(mi.Vector3f(m_a[0][0], m_a[1][0], m_a[2][0])), dr.norm(mi.Vector3f(m_b[0][0], m_b[1][0],
+                                                                                       m_b[2][0]))
+    between = t_b - t_a
+    dist = dr.norm(between)
+    h = (dist * dist + r_a * r_a - r_b * r_b) / (2 * dist)
+    x_ss_w, dx_ss_w = _circle(t_a + between * (h / dist), dr.safe_sqrt(r_a * r_a - h * h), between / dist, phi)
+    valid_ss = (dist < r_a + r_b) & (dist > dr.abs(r_a - r_b))
+
+    x_c = dr.select(kind == SPHERE_SILHOUETTE, x_sil, zero)
+    dx_c = dr.select(kind == SPHERE_SILHOUETTE, dx_sil, zero)
+    for k, x_k, dx_k in ((CONE_SILHOUETTE, x_cone, dx_cone), (CIRCLE, x_rim, dx_rim), (SEGMENT, x_seg, dx_seg),
+                         (SPHERE_PLANE, x_sp, dx_sp), (CONE_PLANE, x_cp, dx_cp), (CAP_PLANE, x_cap, dx_cap)):
+        x_c = dr.select(kind == k, x_k, x_c)
+        dx_c = dr.select(kind == k, dx_k, dx_c)
+    x = m_a @ x_c + t_a
+    dx = m_a @ dx_c
+    x = dr.select(kind == SPHERE_SPHERE, x_ss_w, x)
+    dx = dr.select(kind == SPHERE_SPHERE, dx_ss_w, dx)
+    # phi = 2 pi u for the circles
+    circle = (kind == SPHERE_SILHOUETTE) | (kind == CIRCLE) | (kind == SPHERE_PLANE) | (kind == SPHERE_SPHERE)
+    dx = dr.select(circle, dr.two_pi * dx, dx)
+    valid &= dr.select(kind == SPHERE_SILHOUETTE, valid_sil, True)
+    valid &= dr.select(kind == CONE_SILHOUETTE, valid_cone, True)
+    valid &= dr.select(kind == SPHERE_PLANE, valid_sp, True)
+    valid &= dr.select(kind == SPHERE_SPHERE, valid_ss, True)
+    valid &= dr.select(kind == CONE_PLANE, valid_cp, True)
+    valid &= dr.select(kind == CAP_PLANE, valid_cap, True)
+    return x, dx, valid
