@@ -196,6 +196,18 @@ def main():
                        f"{r['union_steps']:.1f} | {fmt(r.get('csg_path_shapes_s'), '.3f')} | "
                        f"{fmt(r.get('csg_path_union_s'), '.3f')} | {fmt(r.get('mesh_path_s'), '.3f')} |")
         out.append("")
+    gradient = load("gradient_cost")
+    if gradient:
+        m = gradient["machine"]
+        out += ["## Cost of a gradient iteration", "",
+                f"`./run.sh bench gradient_cost.py --mesh` ({m['date']}, `{m['variant']}`): a box minus a sphere, "
+                f"the sphere's radius differentiated, {gradient['size']} at {gradient['spp']} spp; one iteration is "
+                "a render with the parameter attached plus `dr.backward` of an image loss, against the primal "
+                "`csg_path` frame, and Mitsuba's `prb_projective` on the manifold3d mesh (vertex positions "
+                "differentiated) where measured.", "", "| integrator | s / iteration | x primal |", "|---|---|---|"]
+        for r in gradient["rows"]:
+            out.append(f"| {r['integrator']} | {r['seconds']:.3f} | {r['ratio']:.1f} |")
+        out.append("")
     if (common.ROOT / "docs" / "images" / "scaling.png").exists():
         out += ["## Scaling", "", "`./run.sh bench scaling.py`: optimized trace time against primitive count "
                 "(640x360) and against image size (Cheese-1000).", "", "![scaling](images/scaling.png)", ""]

@@ -38,6 +38,7 @@ def test_generators(make, prims):
     ("scaling.py", ["--quick"]),
     ("traversal_mechanisms.py", ["--scenes", "cheese-500", "--size", "32x18", "--repeats", "1"]),
     ("mesh_leaves.py", ["--triangles", "2000", "--holes", "20", "--size", "32x18", "--repeats", "1"]),
+    ("gradient_cost.py", ["--size", "16x12", "--spp", "2", "--repeats", "1"]),
     ("several_shapes.py", ["--counts", "2,3", "--holes", "5", "--size", "32x18", "--repeats", "1"]),
     ("batch_scaling.py", ["--jobs", "2", "--size", "16x9", "--spp", "2", "--chunk-spp", "1", "--overhead-spp", "2"]),
 ])

@@ -1,0 +1,96 @@
+"""Cost of a gradient iteration against the primal render, for a hole's radius.
+
+    ./run.sh bench gradient_cost.py [--size 128x96] [--spp 8] [--mesh]
+
+A box minus a sphere, the sphere's radius (its `primitive_scale`) differentiated, a camera
+light: one optimization iteration is a render with parameters attached plus `dr.backward`
+of an image loss. Measured in one run: the primal `csg_path` frame, `csg_prb` (interior
+derivatives only) and `csg_prb_projective` (with the primarily visible boundaries); with
+`--mesh`, Mitsuba's `prb_projective` on the manifold3d mesh of the model with its vertex
+positions differentiated (the route a user would take instead).
+"""
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import common
+
+
+def scene_dict(mi, csg, model, integrator, size, spp, mesh_file=None):
+    width, height = size
+    shape = ({"type": "csg", "model": csg.model_ref(model)} if mesh_file is None
+             else {"type": "ply", "filename": str(mesh_file)})
+    shape["bsdf"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.6, 0.2]}}
+    return {"type": "scene", "integrator": {"type": integrator, "max_depth": 2},
+            "sensor": {"type": "perspective", "fov": 40,
+                       "to_world": mi.ScalarTransform4f().look_at([4, -6, 3], [0, 0, 0], [0, 0, 1]),
+                       "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
+                                "sample_border": mesh_file is not None},
+                       "sampler": {"type": "independent", "sample_count": spp}},
+            "object": shape, "lamp": {"type": "point", "position": [4, -6, 3], "intensity": 60.0}}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--size", default="128x96")
+    parser.add_argument("--spp", type=int, default=8)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--mesh", action="store_true", help="also time prb_projective on the mesh (slow)")
+    args = common.parse_args(parser, argv)
+    import drjit as dr
+    import mitsuba as mi
+
+    import mitsuba_csg as csg
+    from mitsuba_csg.formats.mesh_export import save_mesh
+    size = tuple(int(v) for v in args.size.split("x"))
+    model = csg.Box(2.0) - csg.Sphere(0.45).translate((0.3, -0.8, 0.4))
+    primal = mi.load_dict(scene_dict(mi, csg, model, "csg_path", size, args.spp))
+    target = mi.render(primal, spp=args.spp, seed=0)
+    rows = []
+
+    def time_primal():
+        dr.eval(mi.render(primal, spp=args.spp, seed=1))
+        dr.sync_thread()
+    primal_s = common.best_of(time_primal, args.repeats)["min_s"]
+    rows.append({"integrator": "csg_path (primal)", "seconds": primal_s, "ratio": 1.0})
+
+    def gradient_iteration(scene, key, value):
+        params = mi.traverse(scene)
+
+        def run():
+            v = type(value)(value)
+            dr.enable_grad(v)
+            params[key] = v
+            params.update()
+            image = mi.render(scene, params, spp=args.spp, seed=1)
+            dr.backward(dr.mean(dr.square(image - target), axis=None))
+            dr.eval(dr.grad(v))
+            dr.sync_thread()
+        return run
+
+    for name in ("csg_prb", "csg_prb_projective"):
+        scene = mi.load_dict(scene_dict(mi, csg, model, name, size, args.spp))
+        run = gradient_iteration(scene, "object.primitive_scale", mi.Float([1.0, 1.0]))
+        seconds = common.best_of(run, args.repeats)["min_s"]
+        rows.append({"integrator": name, "seconds": seconds, "ratio": seconds / primal_s})
+    if args.mesh:
+        with tempfile.TemporaryDirectory() as tmp:
+            ply = Path(tmp) / "model.ply"
+            save_mesh(csg.to_mesh(model, segments=64), ply)
+            scene = mi.load_dict(scene_dict(mi, csg, model, "prb_projective", size, args.spp, ply))
+            positions = mi.Float(mi.traverse(scene)["object.vertex_positions"])
+            run = gradient_iteration(scene, "object.vertex_positions", positions)
+            seconds = common.best_of(run, 1)["min_s"]
+            rows.append({"integrator": "prb_projective on the mesh", "seconds": seconds, "ratio": seconds / primal_s})
+    print(f"One gradient iteration, {args.size}, {args.spp} spp (best of {args.repeats})")
+    print(common.table(rows, [("integrator", "integrator", "s"), ("seconds", "s / iteration", ".3f"),
+                              ("ratio", "x primal", ".1f")]))
+    path = common.write("gradient_cost", {"machine": common.machine(), "size": args.size, "spp": args.spp,
+                                          "rows": rows})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
