@@ -124,7 +124,7 @@ def _box_corners(m):
     return signs @ m[:3, :3].T + m[:3, 3]
 
 
-def _rows(to_world, prim, active):
+def leaf_rows(to_world, prim, active):
     """(M, t) of canonical -> world for primitives, with AD: `to_world` holds 12 per primitive."""
     rows = [dr.gather(mi.Vector4f, to_world, prim * 3 + r, active) for r in range(3)]
     m = mi.Matrix3f(rows[0].x, rows[0].y, rows[0].z, rows[1].x, rows[1].y, rows[1].z,

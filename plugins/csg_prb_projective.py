@@ -144,8 +144,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         m_a, t_a, m_b, t_b = mi.Matrix3f(0), mi.Vector3f(0), mi.Matrix3f(0), mi.Vector3f(0)
         for s, shape in enumerate(csg.csg):
             mine = solid == s
-            ma, ta = csg_edges._rows(shape.primitive_to_world, a, mine)
-            mb, tb = csg_edges._rows(shape.primitive_to_world, b, mine)
+            ma, ta = csg_edges.leaf_rows(shape.primitive_to_world, a, mine)
+            mb, tb = csg_edges.leaf_rows(shape.primitive_to_world, b, mine)
             m_a, t_a = dr.select(mine, ma, m_a), dr.select(mine, ta, t_a)
             m_b, t_b = dr.select(mine, mb, m_b), dr.select(mine, tb, t_b)
         x, dx, valid = csg_edges.evaluate(kind, extra, m_a, t_a, m_b, t_b, cone, cam, u)
