@@ -802,3 +802,9 @@ def test_the_media_example_scene_renders_its_ink(tmp_path):
         rgb = image[16:26, 20:28].reshape(-1, 3).mean(axis=0)
         return rgb[2] / rgb[0]
     assert centre(ROOT / "scenes" / "ink_glass.xml") > 1.2 * centre(clear)
+
+
+@pytest.mark.parametrize("value", [-1, 1.5, True])
+def test_csg_prb_projective_sample_counts_must_be_non_negative_integers(value):
+    with pytest.raises(Exception, match="sppp"):
+        mi.load_dict({"type": "csg_prb_projective", "sppp": value})
