@@ -160,7 +160,12 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             it.p = x_d
             ds, _ = sensor.sample_direction(it, mi.Point2f(0), valid)
             valid &= (ds.pdf != 0) & (speed > 0) & dr.isfinite(pdf) & (pdf > 0)
-            jacobian = _sensor_jacobian(sensor, x_d, tangent, normal)
+            # Film area per (curve length x normal displacement): Mitsuba's own Jacobian of the
+            # camera's projection, for a point moving along `silhouette_d` and `n` (the method
+            # reads nothing of its ProjectiveDetail instance).
+            sample = dr.zeros(mi.SilhouetteSample3f, dr.width(x_d))
+            sample.p, sample.silhouette_d, sample.n = x_d, tangent, normal
+            jacobian = mi.ad.ProjectiveDetail.sensor_jacobian(None, sensor, sample)
             # The radiance difference across the curve, from camera rays either side of it at
             # offsets d and 2 d, extrapolated linearly to the curve: where the surface beside
             # the curve is seen obliquely (a hole's far rim, a silhouette), the hit point moves
@@ -194,25 +199,3 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     def to_string(self):
         return (f"CSGPRBProjectiveIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"sppc={self.sppc}, sppp={self.sppp}]")
-
-
-def _sensor_jacobian(sensor, p, tangent, normal):
-    """Film area per (curve length x normal displacement) at p: |det| of the projections of
-    unit moves along the curve and along its normal (forward-mode AD through the camera's
-    projection)."""
-    to_local = sensor.world_transform().inverse()
-    to_film = sensor.projection_transform()
-    with dr.resume_grad():
-        e1, e2 = mi.Float(0), mi.Float(0)
-        dr.enable_grad(e1, e2)
-
-        def film_point(q):
-            q = to_film @ (to_local @ mi.Point3f(q))
-            return mi.Point2f(q.x, q.y)
-        f1, f2 = film_point(p + tangent * e1), film_point(p + normal * e2)
-        dr.set_grad(e1, 1.0)
-        dr.set_grad(e2, 1.0)
-        dr.enqueue(dr.ADMode.Forward, e1, e2)
-        dr.traverse(dr.ADMode.Forward)
-        g1, g2 = dr.grad(f1), dr.grad(f2)
-    return dr.abs(g1.x * g2.y - g1.y * g2.x)
