@@ -13,6 +13,8 @@ from .csg_prb import CSGPRBIntegrator
 # Camera rays either side of a curve pass it at this fraction of its distance (about 1e-3
 # pixel at 64 pixels over 40 degrees).
 OFFSET = 1e-5
+# (offset factor, weight) pairs: the differences at OFFSET and 2 OFFSET extrapolated linearly to 0.
+EXTRAPOLATION = ((1.0, 2.0), (2.0, -1.0))
 
 
 class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
@@ -173,7 +175,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             # offset, 1e-5 of the distance, stays well above the kernel's tie window.
             offset = OFFSET * dr.norm(x_d - cam)
             delta = mi.Spectrum(0)
-            for factor, scale in ((1.0, 2.0), (2.0, -1.0)):
+            for factor, scale in EXTRAPOLATION:
                 inside = self._radiance(scene, sampler, cam, x_d - factor * offset * normal, wavelengths, valid)
                 outside = self._radiance(scene, sampler, cam, x_d + factor * offset * normal, wavelengths, valid)
                 delta += scale * (inside - outside)
