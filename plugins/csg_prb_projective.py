@@ -168,6 +168,16 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             sample = dr.zeros(mi.SilhouetteSample3f, dr.width(x_d))
             sample.p, sample.silhouette_d, sample.n = x_d, tangent, normal
             jacobian = mi.ad.ProjectiveDetail.sensor_jacobian(None, sensor, sample)
+            # Only a visible curve point: a hidden curve can pass near a visible discontinuity
+            # in the image (a hole's sphere's contour just beneath the face runs along the
+            # rim, tangent to it where it meets the face), and camera rays either side of the
+            # hidden point would measure the jump across the visible one. Tested from just in
+            # front of the point, so that its own surfaces do not count.
+            towards_camera = cam - x_d
+            distance = dr.norm(towards_camera)
+            view_ray = mi.Ray3f(x_d + OFFSET * towards_camera, towards_camera / distance)
+            view_ray.maxt = (1.0 - 2.0 * OFFSET) * distance
+            valid &= ~csg.occluded(scene, view_ray, valid)
             # The radiance difference across the curve, from camera rays either side of it at
             # offsets d and 2 d, extrapolated linearly to the curve: where the surface beside
             # the curve is seen obliquely (a hole's far rim, a silhouette), the hit point moves
