@@ -24,9 +24,9 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
   of z on two branches when the plane is nearer the axis's direction).
 - CAP_PLANE: the chord where the plane of a box face crosses a cone or cylinder cap.
 
-Each is listed where it may exist (the leaves' boxes overlap); whether a point is on the
-boundary of the CSG solid, and visible, is left to the radiance difference itself, which
-is zero across a curve that is not an image discontinuity. Curves of the other leaves
+Each is listed where it may exist (the leaves' boxes overlap); the integrator drops points
+the camera does not see, and whether a point is on the boundary of the CSG solid is left
+to the radiance difference itself, which is zero across a curve inside the solid. Curves of the other leaves
 (tori, quadrics, convex polyhedra, meshes) and the general curves where a cylinder, cone or
 torus meets another leaf are not listed yet (`docs/plugins.md` says which derivatives are
 missing).

@@ -53,9 +53,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     parameters); the estimate is the radiance difference across the curve (camera rays
     either side of it, at two offsets extrapolated to the curve) times the curve's motion
     normal to itself in the image (Mitsuba's `prb_projective` treats its own meshes the
-    same way; Li et al. 2018's edge sampling). A curve that is hidden, or that is not on
-    the solid's boundary, has no radiance difference across it and adds nothing. Forward
-    and backward mode.
+    same way; Li et al. 2018's edge sampling). A curve point the camera does not see (a
+    ray from it towards the camera is blocked) adds nothing, and one that is not on the
+    solid's boundary has no radiance difference across it. Forward and backward mode.
 
     Not yet differentiated: the curves of tori, quadrics, convex polyhedra and mesh leaves,
     the curves where cylinders, cones or tori meet leaves other than boxes, and indirect
