@@ -1,6 +1,7 @@
-"""Cost of a gradient iteration against the primal render, for a hole's radius.
+"""Cost of a gradient iteration against the primal render, for a hole's radius; with
+--accuracy, how close each route's gradient image comes to finite differences.
 
-    ./run.sh bench gradient_cost.py [--size 128x96] [--spp 8] [--mesh]
+    ./run.sh bench gradient_cost.py [--size 128x96] [--spp 8] [--mesh] [--accuracy]
 
 A box minus a sphere, the sphere's radius (its `primitive_scale`) differentiated, a camera
 light: one optimization iteration is a render with parameters attached plus `dr.backward`
@@ -8,6 +9,12 @@ of an image loss. Measured in one run: the primal `csg_path` frame, `csg_prb` (i
 derivatives only) and `csg_prb_projective` (with the primarily visible boundaries); with
 `--mesh`, Mitsuba's `prb_projective` on the manifold3d mesh of the model with its vertex
 positions differentiated (the route a user would take instead).
+
+`--accuracy` (64x48): a hole cut into the top face only, moved along x, so that the mesh's
+vertices on the sphere and on the rim move rigidly with it. Forward gradient images (256
+spp) of csg_prb, csg_prb_projective and Mitsuba's prb_projective on the manifold3d mesh
+(with interpolated vertex normals, and with face normals), against central differences
+(4096 spp, eps 0.02) of csg_path on the model and of Mitsuba's path on the mesh.
 """
 from __future__ import annotations
 
@@ -18,10 +25,10 @@ from pathlib import Path
 import common
 
 
-def scene_dict(mi, csg, model, integrator, size, spp, mesh_file=None):
+def scene_dict(mi, csg, model, integrator, size, spp, mesh_file=None, face_normals=False):
     width, height = size
     shape = ({"type": "csg", "model": csg.model_ref(model)} if mesh_file is None
-             else {"type": "ply", "filename": str(mesh_file)})
+             else {"type": "ply", "filename": str(mesh_file), "face_normals": face_normals})
     shape["bsdf"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.6, 0.2]}}
     return {"type": "scene", "integrator": {"type": integrator, "max_depth": 2},
             "sensor": {"type": "perspective", "fov": 40,
@@ -32,12 +39,68 @@ def scene_dict(mi, csg, model, integrator, size, spp, mesh_file=None):
             "object": shape, "lamp": {"type": "point", "position": [4, -6, 3], "intensity": 60.0}}
 
 
+def accuracy(mi, dr, csg, save_mesh, spp=256, fd_spp=4096, eps=0.02, size=(64, 48)):
+    """Rows: each route's gradient image sum against the finite difference's, and their correlation."""
+    import numpy as np
+    centre, radius = np.array([0.3, -0.2, 0.9]), 0.5
+    model = csg.Box(2.0) - csg.Sphere(radius).translate(tuple(centre))
+    key = "object.primitive_to_world"
+
+    def forward(scene, key, direction):
+        params = mi.traverse(scene)
+        base = np.array(params[key])
+        h = mi.Float(0.0)
+        dr.enable_grad(h)
+        params[key] = mi.Float(base) + h * mi.Float(direction.astype(np.float32))
+        params.update()
+        image = mi.render(scene, params, spp=spp, seed=1)
+        dr.forward(h)
+        return dr.grad(image).numpy()
+
+    def central(scene, key, direction):
+        base = np.array(mi.traverse(scene)[key])
+
+        def at(v):
+            params = mi.traverse(scene)
+            params[key] = mi.Float((base + v * direction).astype(np.float32))
+            params.update()
+            return np.array(mi.render(scene, spp=fd_spp, seed=1))
+        return (at(eps) - at(-eps)) / (2 * eps)
+
+    move = np.zeros(24)
+    move[12 + 3] = 1.0                                       # the sphere's x translation
+    fd = central(mi.load_dict(scene_dict(mi, csg, model, "csg_path", size, fd_spp)), key, move)
+    rows = [{"route": "finite differences, csg_path", "sum": float(fd.sum()), "ratio": 1.0, "correlation": 1.0}]
+
+    def row(name, image):
+        rows.append({"route": name, "sum": float(image.sum()), "ratio": float(image.sum() / fd.sum()),
+                     "correlation": float(np.corrcoef(image.ravel(), fd.ravel())[0, 1])})
+    for name in ("csg_prb", "csg_prb_projective"):
+        row(name, forward(mi.load_dict(scene_dict(mi, csg, model, name, size, spp)), key, move))
+    with tempfile.TemporaryDirectory() as tmp:
+        ply = Path(tmp) / "model.ply"
+        save_mesh(csg.to_mesh(model, segments=128), ply)
+        for face_normals in (False, True):
+            label = "face normals" if face_normals else "vertex normals"
+            scene = mi.load_dict(scene_dict(mi, csg, model, "prb_projective", size, spp, ply, face_normals))
+            vertices = np.array(mi.traverse(scene)["object.vertex_positions"]).reshape(-1, 3)
+            motion = np.zeros_like(vertices)
+            motion[np.linalg.norm(vertices - centre, axis=1) < radius + 1e-3, 0] = 1.0
+            row(f"prb_projective on the mesh, {label}", forward(scene, "object.vertex_positions", motion.ravel()))
+            path = mi.load_dict(scene_dict(mi, csg, model, "path", size, fd_spp, ply, face_normals))
+            row(f"finite differences, path on the mesh, {label}",
+                central(path, "object.vertex_positions", motion.ravel()))
+    return rows
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size", default="128x96")
     parser.add_argument("--spp", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--mesh", action="store_true", help="also time prb_projective on the mesh (slow)")
+    parser.add_argument("--accuracy", action="store_true",
+                        help="also compare gradient images with finite differences (64x48, slow)")
     args = common.parse_args(parser, argv)
     import drjit as dr
     import mitsuba as mi
@@ -87,8 +150,13 @@ def main(argv=None):
     print(f"One gradient iteration, {args.size}, {args.spp} spp (best of {args.repeats})")
     print(common.table(rows, [("integrator", "integrator", "s"), ("seconds", "s / iteration", ".3f"),
                               ("ratio", "x primal", ".1f")]))
-    path = common.write("gradient_cost", {"machine": common.machine(), "size": args.size, "spp": args.spp,
-                                          "rows": rows})
+    result = {"machine": common.machine(), "size": args.size, "spp": args.spp, "rows": rows}
+    if args.accuracy:
+        result["accuracy"] = accuracy(mi, dr, csg, save_mesh)
+        print("\nGradient images of a hole's x position (64x48) against finite differences")
+        print(common.table(result["accuracy"], [("route", "route", "s"), ("sum", "sum", ".3f"),
+                                                ("ratio", "/ FD", ".3f"), ("correlation", "correlation", ".3f")]))
+    path = common.write("gradient_cost", result)
     print(f"wrote {path}")
 
 
