@@ -16,19 +16,21 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
 - CONE_SILHOUETTE: the two contour lines of a cone or cylinder side (one curve per line).
 - CIRCLE: a fixed circle of a leaf's canonical frame: the rims of cones and cylinders.
 - SEGMENT: a box edge (corners of the canonical cube).
-- SPHERE_PLANE: where a sphere leaf meets the plane of a box face (a CSG edge of holes cut
-  into boxes), in the sphere's canonical frame.
+- POLY_EDGE: an edge of a convex polyhedron leaf (prisms, GDML polyhedra), between two of
+  its canonical vertices.
+- SPHERE_PLANE: where a sphere leaf meets the plane of a box's or convex polyhedron's face
+  (a CSG edge of holes cut into them), in the sphere's canonical frame.
 - SPHERE_SPHERE: where two sphere leaves with uniform scales meet.
-- CONE_PLANE: where a cone or cylinder side meets the plane of a box face, in closed form
+- CONE_PLANE: where a cone or cylinder side meets the plane of such a face, in closed form
   in the cone's canonical frame (z as a function of the angle, or the angle as a function
   of z on two branches when the plane is nearer the axis's direction).
-- CAP_PLANE: the chord where the plane of a box face crosses a cone or cylinder cap.
+- CAP_PLANE: the chord where the plane of such a face crosses a cone or cylinder cap.
 
 Each is listed where it may exist (the leaves' boxes overlap); the integrator drops points
 the camera does not see, and whether a point is on the boundary of the CSG solid is left
 to the radiance difference itself, which is zero across a curve inside the solid. Curves of the other leaves
-(tori, quadrics, convex polyhedra, meshes) and the general curves where a cylinder, cone or
-torus meets another leaf are not listed yet (`docs/plugins.md` says which derivatives are
+(tori, quadrics, meshes) and the general curves where a cylinder, cone or torus meets
+another leaf are not listed yet (`docs/plugins.md` says which derivatives are
 missing).
 """
 from __future__ import annotations
@@ -39,19 +41,38 @@ import numpy as np
 
 from mitsuba_csg.engine import layout as K
 
-SPHERE_SILHOUETTE, CONE_SILHOUETTE, CIRCLE, SEGMENT, SPHERE_PLANE, SPHERE_SPHERE, CONE_PLANE, CAP_PLANE = range(8)
-# `extra` of the plane curves: the box face (0-5), and for CONE_PLANE whether the curve is
-# parametrized by height (planes nearer the axis's direction; two branches) rather than by
-# angle, for CAP_PLANE which cap.
-FACE_MASK, BY_HEIGHT, BRANCH, TOP_CAP = 0x7, 0x8, 0x10, 0x8
+(SPHERE_SILHOUETTE, CONE_SILHOUETTE, CIRCLE, SEGMENT, SPHERE_PLANE, SPHERE_SPHERE, CONE_PLANE, CAP_PLANE,
+ POLY_EDGE) = range(9)
+# `extra` of the plane curves: for CONE_PLANE whether the curve is parametrized by height
+# (planes nearer the axis's direction; two branches) rather than by angle, for CAP_PLANE
+# which cap. The plane itself is the curve's `data`: (normal, offset) in leaf b's frame.
+BY_HEIGHT, BRANCH, TOP_CAP = 0x8, 0x10, 0x8
 
 # Box edges: pairs of canonical corners (index bits = x, y, z sign).
 _BOX_EDGES = [(a, a | (1 << axis)) for axis in range(3) for a in range(8) if not a & (1 << axis)]
 
 
+def _polyhedron_edges(planes, vertices, tolerance=1e-9):
+    """Canonical end points (E, 2, 3) of a convex polyhedron's edges: the vertices on two
+    non-parallel face planes."""
+    on = np.abs(vertices @ planes[:, :3].T - planes[:, 3]) <= tolerance * (1 + np.abs(planes[:, 3]))
+    edges = []
+    for i in range(len(planes)):
+        for j in range(i + 1, len(planes)):
+            if np.linalg.norm(np.cross(planes[i, :3], planes[j, :3])) <= 1e-9:
+                continue
+            both = vertices[on[:, i] & on[:, j]]
+            if len(both) >= 2:
+                axis = np.cross(planes[i, :3], planes[j, :3])
+                position = both @ axis
+                edges.append((both[np.argmin(position)], both[np.argmax(position)]))
+    return np.array(edges).reshape(-1, 2, 3)
+
+
 class Curves:
     """The curves of one csg shape: per curve its kind, leaves a and b, an extra int (edge,
-    face, branch) and a sampling weight (about its length in the image)."""
+    branch), 8 floats of data (the cone radii of leaf a, then a face plane of leaf b or an
+    edge's end points) and a sampling weight (about its length in the image)."""
 
     def __init__(self, shape, camera: np.ndarray):
         flat = shape.prepared.flat
@@ -62,15 +83,40 @@ class Curves:
         spheres = np.flatnonzero(flat.prim_shape == K.SPHERE)
         boxes = np.flatnonzero(flat.prim_shape == K.BOX)
         cones = np.flatnonzero(flat.prim_shape == K.CONE)
-        parts = []                                  # (kind, a, b, extra, length)
+        convex = np.flatnonzero(flat.prim_shape == K.CONVEX)
+        r = flat.prim_param
+        parts = []                                  # (kind, a, b, extra, length, data)
 
-        def add(kind, a, b, extra, length):
+        def add(kind, a, b, extra, length, data=None):
             a = np.atleast_1d(a)
+            rows = np.zeros((len(a), 8))
+            rows[:, :2] = r[a]
+            if data is not None:
+                rows[:, 2:2 + np.shape(data)[-1]] = data
             parts.append((np.full(len(a), kind), a, np.broadcast_to(b, a.shape), np.broadcast_to(extra, a.shape),
-                          np.broadcast_to(length, a.shape)))
+                          np.broadcast_to(length, a.shape), rows))
+
+        # Face planes (canonical normal, offset) of boxes and convex polyhedra, one row each.
+        face_prim, face_plane = [], []
+        for p in boxes:
+            for face in range(6):
+                normal = np.zeros(3)
+                normal[face >> 1] = 1.0 if face & 1 else -1.0
+                face_prim.append(p)
+                face_plane.append(np.append(normal, 1.0))
+        for p in convex:
+            start, count = flat.prim_plane_start[p], flat.prim_plane_count[p]
+            for plane in flat.planes[start:start + count]:
+                face_prim.append(p)
+                face_plane.append(plane)
+            ends = _polyhedron_edges(flat.planes[start:start + count], flat.plane_vertices[start])
+            world = np.einsum("ij,ekj->eki", to_world[p, :3, :3], ends)
+            add(POLY_EDGE, np.full(len(ends), p), p, 0, np.linalg.norm(world[:, 1] - world[:, 0], axis=1),
+                ends.reshape(-1, 6))
+        face_prim = np.array(face_prim, np.int64)
+        face_plane = np.array(face_plane).reshape(-1, 4)
 
         add(SPHERE_SILHOUETTE, spheres, spheres, 0, 2 * np.pi * scale[spheres].max(axis=1))
-        r = flat.prim_param
         for k in (0, 1):
             side = np.linalg.norm(np.einsum("pij,pj->pi", to_world[cones, :3, :3],
                                             np.column_stack([r[cones, 1] - r[cones, 0], 0 * cones, 2 + 0 * cones])),
@@ -83,39 +129,40 @@ class Curves:
             add(SEGMENT, boxes, boxes, e, np.linalg.norm(corners[:, i] - corners[:, j], axis=1))
 
         def overlapping(first, second):
-            """Pairs (p, q) of the two index sets whose boxes overlap."""
+            """Pairs (i, j) of indices into the two primitive lists whose boxes overlap."""
             if not len(first) or not len(second):
                 return np.zeros(0, np.int64), np.zeros(0, np.int64)
             lo, hi = flat.prim_lower, flat.prim_upper
-            hit = np.all((lo[first, None] <= hi[None, second]) & (lo[None, second] <= hi[first, None]), axis=2)
-            i, j = np.nonzero(hit)
-            return first[i], second[j]
+            return np.nonzero(np.all((lo[first, None] <= hi[None, second]) & (lo[None, second] <= hi[first, None]),
+                                     axis=2))
 
-        p, q = overlapping(spheres, boxes)
-        for face in range(6):
-            add(SPHERE_PLANE, p, q, face, 2 * np.pi * scale[p].max(axis=1))
-        p, q = overlapping(spheres, spheres)
+        i, j = overlapping(spheres, face_prim)
+        p, q = spheres[i], face_prim[j]
+        add(SPHERE_PLANE, p, q, 0, 2 * np.pi * scale[p].max(axis=1), face_plane[j])
+        i, j = overlapping(spheres, spheres)
+        p, q = spheres[i], spheres[j]
         uniform = np.ptp(scale, axis=1) <= 1e-6 * scale.max(axis=1)
         keep = (q > p) & uniform[p] & uniform[q]
         p, q = p[keep], q[keep]
         add(SPHERE_SPHERE, p, q, 0, 2 * np.pi * np.minimum(scale[p].max(axis=1), scale[q].max(axis=1)))
-        p, q = overlapping(cones, boxes)
+        i, j = overlapping(cones, face_prim)
+        p, q, plane = cones[i], face_prim[j], face_plane[j]
         size = scale[p].max(axis=1)
-        for face in range(6):
-            axis, sign = face >> 1, (1.0 if face & 1 else -1.0)
-            # the face's normal in the cone's frame: nearer the axis's direction, parametrize by angle
-            normal = sign * np.einsum("pk,pkj->pj", np.linalg.inv(to_world[q])[:, axis, :3], to_world[p, :3, :3])
-            flat_ish = np.abs(normal[:, 2]) >= np.linalg.norm(normal[:, :2], axis=1)
-            add(CONE_PLANE, p[flat_ish], q[flat_ish], face, 2 * np.pi * size[flat_ish])
-            for branch in (0, BRANCH):
-                add(CONE_PLANE, p[~flat_ish], q[~flat_ish], face | BY_HEIGHT | branch, 2 * size[~flat_ish])
-            for cap, k in ((0, 0), (TOP_CAP, 1)):
-                crossing = (r[p, k] > 0) & (np.linalg.norm(normal[:, :2], axis=1) > 1e-9 * np.abs(normal[:, 2]))
-                add(CAP_PLANE, p[crossing], q[crossing], face | cap, 2 * r[p[crossing], k] * size[crossing])
-        kind, a, b, extra, length = (np.concatenate(column) for column in zip(*parts))
+        # the face's normal in the cone's frame: nearer the axis's direction, parametrize by angle
+        normal = np.einsum("pk,pkj->pj", np.einsum("pk,pkj->pj", plane[:, :3], np.linalg.inv(to_world[q])[:, :3, :3]),
+                           to_world[p, :3, :3])
+        flat_ish = np.abs(normal[:, 2]) >= np.linalg.norm(normal[:, :2], axis=1)
+        add(CONE_PLANE, p[flat_ish], q[flat_ish], 0, 2 * np.pi * size[flat_ish], plane[flat_ish])
+        for branch in (0, BRANCH):
+            add(CONE_PLANE, p[~flat_ish], q[~flat_ish], BY_HEIGHT | branch, 2 * size[~flat_ish], plane[~flat_ish])
+        for cap, k in ((0, 0), (TOP_CAP, 1)):
+            crossing = (r[p, k] > 0) & (np.linalg.norm(normal[:, :2], axis=1) > 1e-9 * np.abs(normal[:, 2]))
+            add(CAP_PLANE, p[crossing], q[crossing], cap, 2 * r[p[crossing], k] * size[crossing], plane[crossing])
+        kind, a, b, extra, length, data = (np.concatenate(column) for column in zip(*parts))
         self.count = len(kind)
         self.kind, self.a, self.b = kind.astype(np.uint32), a.astype(np.uint32), b.astype(np.uint32)
         self.extra = extra.astype(np.uint32)
+        self.data = data.astype(np.float32)
         self.weight = length / distance[a] if self.count else np.zeros(0)
 
 
@@ -146,9 +193,9 @@ def _circle(centre, radius, w, phi):
     return centre + radius * (c * u1 + s * u2), radius * (c * u2 - s * u1)
 
 
-def evaluate(kind, extra, m_a, t_a, m_b, t_b, params, camera, u):
+def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     """(world point, world tangent dx/du, valid) of curves at u in [0, 1), attached to the
-    matrices (m, t) of the curves' leaves; `params` the cone radii of leaf a."""
+    matrices (m, t) of the curves' leaves; `data` the curves' 8 floats (`Curves.data`)."""
     phi = dr.two_pi * u
     inv_a = dr.rcp(m_a)
     cam = inv_a @ (camera - t_a)                   # the camera in leaf a's canonical frame
@@ -161,7 +208,7 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, params, camera, u):
     valid_sil = s2 > 1
 
     # Cone side contour: cos(phi - phi0) = (a + b cam_z) / |cam_xy| at r(z) = a + b z.
-    r0, r1 = params
+    r0, r1 = data[0], data[1]
     a_, b_ = 0.5 * (r0 + r1), 0.5 * (r1 - r0)
     rho = dr.sqrt(cam.x * cam.x + cam.y * cam.y)
     cos_d = (a_ + b_ * cam.z) / rho
@@ -186,14 +233,16 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, params, camera, u):
     ci, cj = corner(corner_i), corner(corner_j)
     x_seg, dx_seg = dr.lerp(ci, cj, u), cj - ci
 
-    # Sphere meets the plane of box b's face: s x_axis = 1 in b's frame; n' . x = d' in a's.
-    face = extra & FACE_MASK
-    axis, sign = face >> 1, dr.select((face & 1) != 0, 1.0, -1.0)
+    # Convex polyhedron edge: between the two canonical end points in the data.
+    end_0, end_1 = mi.Vector3f(data[2], data[3], data[4]), mi.Vector3f(data[5], data[6], data[7])
+    x_poly, dx_poly = dr.lerp(end_0, end_1, u), end_1 - end_0
+
+    # Sphere meets the plane of a face of leaf b: n . y = d in b's frame (y = M_b^-1 (x_w -
+    # t_b)), that is q . (x_w - t_b) = d with q = M_b^-T n; n' . x = d' in a's frame.
     inv_b = dr.rcp(m_b)
-    inv_b_row = mi.Vector3f(*[dr.select(axis == 0, inv_b[0][k], dr.select(axis == 1, inv_b[1][k], inv_b[2][k]))
-                              for k in range(3)])
-    n_plane = sign * (m_a.T @ inv_b_row)
-    d_plane = 1 - sign * dr.dot(inv_b_row, t_a - t_b)
+    q = inv_b.T @ mi.Vector3f(data[2], data[3], data[4])
+    n_plane = m_a.T @ q
+    d_plane = data[5] - dr.dot(q, t_a - t_b)
     n2 = dr.squared_norm(n_plane)
     x_sp, dx_sp = _circle(n_plane * (d_plane / n2), dr.safe_sqrt(1 - d_plane * d_plane / n2),
                           dr.normalize(n_plane), phi)
@@ -251,7 +300,8 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, params, camera, u):
     x_c = dr.select(kind == SPHERE_SILHOUETTE, x_sil, zero)
     dx_c = dr.select(kind == SPHERE_SILHOUETTE, dx_sil, zero)
     for k, x_k, dx_k in ((CONE_SILHOUETTE, x_cone, dx_cone), (CIRCLE, x_rim, dx_rim), (SEGMENT, x_seg, dx_seg),
-                         (SPHERE_PLANE, x_sp, dx_sp), (CONE_PLANE, x_cp, dx_cp), (CAP_PLANE, x_cap, dx_cap)):
+                         (SPHERE_PLANE, x_sp, dx_sp), (CONE_PLANE, x_cp, dx_cp), (CAP_PLANE, x_cap, dx_cap),
+                         (POLY_EDGE, x_poly, dx_poly)):
         x_c = dr.select(kind == k, x_k, x_c)
         dx_c = dr.select(kind == k, dx_k, dx_c)
     x = m_a @ x_c + t_a

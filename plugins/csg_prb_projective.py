@@ -122,11 +122,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             return None
         shape_of = np.concatenate([np.full(c.count, s, np.uint32) for s, c in enumerate(curves)])
         weights = np.concatenate([c.weight for c in curves])
-        params = np.zeros((len(weights), 2), np.float32)
-        start = 0
-        for shape, c in zip(csg.csg, curves):
-            params[start:start + c.count] = shape.prepared.flat.prim_param[c.a]
-            start += c.count
+        data = np.concatenate([c.data for c in curves])
         distribution = mi.DiscreteDistribution(mi.Float(weights.astype(np.float32)))
 
         sampler, spp = self.prepare(sensor, 0xFFFFFFFF ^ seed, spp, [])
@@ -139,7 +135,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         b = dr.gather(mi.UInt32, mi.UInt32(np.concatenate([c.b for c in curves])), index)
         extra = dr.gather(mi.UInt32, mi.UInt32(np.concatenate([c.extra for c in curves])), index)
         solid = dr.gather(mi.UInt32, mi.UInt32(shape_of), index)
-        cone = (dr.gather(mi.Float, mi.Float(params[:, 0]), index), dr.gather(mi.Float, mi.Float(params[:, 1]), index))
+        data = [dr.gather(mi.Float, mi.Float(np.ascontiguousarray(data[:, k])), index) for k in range(data.shape[1])]
         cam = mi.Point3f(*[float(c) for c in camera])
 
         # The leaves' matrices, attached to each shape's primitive_to_world.
@@ -150,7 +146,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             mb, tb = csg_edges.leaf_rows(shape.primitive_to_world, b, mine)
             m_a, t_a = dr.select(mine, ma, m_a), dr.select(mine, ta, t_a)
             m_b, t_b = dr.select(mine, mb, m_b), dr.select(mine, tb, t_b)
-        x, dx, valid = csg_edges.evaluate(kind, extra, m_a, t_a, m_b, t_b, cone, cam, u)
+        x, dx, valid = csg_edges.evaluate(kind, extra, m_a, t_a, m_b, t_b, data, cam, u)
         with dr.suspend_grad():
             x_d, dx_d = dr.detach(x), dr.detach(dx)
             speed = dr.norm(dx_d)

@@ -114,6 +114,20 @@ def test_cylinder_intersected_with_a_rotated_box():
     assert abs(ratio - 1) > 0.3, ratio
 
 
+PRISM = csg.Prism(6, 1.0, 2.0).rotate((0, 0, 1), 10) - csg.Sphere(0.6).translate((0.9, -0.5, 0.3))
+
+
+@pytest.mark.parametrize("key, weights", [("primitive_rotation", [0, 0, 1, 0, 0, 0]),
+                                          ("primitive_to_world", [0] * 15 + [1] + [0] * 8),
+                                          ("primitive_scale", [0, 1])],
+                         ids=["prism angle", "hole x", "hole radius"])
+def test_hexagonal_prism_minus_sphere(key, weights):
+    """A convex polyhedron leaf: the prism's edges (turning about its axis) and the circles
+    where the hole meets its faces (the hole moving, growing)."""
+    ratio, correlation = check(PRISM, key, weights, spp=512, eps=0.01)
+    assert abs(ratio - 1) > 0.5 and correlation < 0.5, (ratio, correlation)
+
+
 def _cheese_hole_radius(hole):
     """The 20-hole Cheese seen close up (fov 6) around one hole, whose radius (its sphere's
     diagonal) moves: (model, weights, view)."""
