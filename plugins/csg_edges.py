@@ -21,6 +21,8 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
 - SPHERE_PLANE: where a sphere leaf meets the plane of a box's or convex polyhedron's face
   (a CSG edge of holes cut into them), in the sphere's canonical frame.
 - SPHERE_SPHERE: where two sphere leaves with uniform scales meet.
+- PLANE_PLANE: where faces of two box or convex leaves meet (a notch cut by a box), the
+  line of the two planes in world space over the overlap of the leaves' boxes.
 - CONE_PLANE: where a cone or cylinder side meets the plane of such a face, in closed form
   in the cone's canonical frame (z as a function of the angle, or the angle as a function
   of z on two branches when the plane is nearer the axis's direction).
@@ -42,7 +44,8 @@ import numpy as np
 from mitsuba_csg.engine import layout as K
 
 (SPHERE_SILHOUETTE, CONE_SILHOUETTE, CIRCLE, SEGMENT, SPHERE_PLANE, SPHERE_SPHERE, CONE_PLANE, CAP_PLANE,
- POLY_EDGE) = range(9)
+ POLY_EDGE, PLANE_PLANE) = range(10)
+DATA_FLOATS = 12
 # `extra` of the plane curves: for CONE_PLANE whether the curve is parametrized by height
 # (planes nearer the axis's direction; two branches) rather than by angle, for CAP_PLANE
 # which cap. The plane itself is the curve's `data`: (normal, offset) in leaf b's frame.
@@ -71,8 +74,9 @@ def _polyhedron_edges(planes, vertices, tolerance=1e-9):
 
 class Curves:
     """The curves of one csg shape: per curve its kind, leaves a and b, an extra int (edge,
-    branch), 8 floats of data (the cone radii of leaf a, then a face plane of leaf b or an
-    edge's end points) and a sampling weight (about its length in the image)."""
+    branch), DATA_FLOATS of data (the cone radii of leaf a, then a face plane of leaf b, an
+    edge's end points, or two face planes and the line's parameter range) and a sampling
+    weight (about its length in the image)."""
 
     def __init__(self, shape, camera: np.ndarray):
         flat = shape.prepared.flat
@@ -89,7 +93,7 @@ class Curves:
 
         def add(kind, a, b, extra, length, data=None):
             a = np.atleast_1d(a)
-            rows = np.zeros((len(a), 8))
+            rows = np.zeros((len(a), DATA_FLOATS))
             rows[:, :2] = r[a]
             if data is not None:
                 rows[:, 2:2 + np.shape(data)[-1]] = data
@@ -136,7 +140,20 @@ class Curves:
             return np.nonzero(np.all((lo[first, None] <= hi[None, second]) & (lo[None, second] <= hi[first, None]),
                                      axis=2))
 
-        i, j = overlapping(spheres, face_prim)
+        # Faces of the leaves in `second` order: prims with faces, their first face and count.
+        with_faces, face_first, face_count = np.unique(face_prim, return_index=True, return_counts=True)
+
+        def near_faces(first):
+            """Pairs (i, face) of an index into `first` and a face of another leaf whose box
+            overlaps leaf first[i]'s (boxes tested per leaf, then expanded to its faces)."""
+            i, k = overlapping(first, with_faces)
+            keep = first[i] != with_faces[k]
+            i, k = i[keep], k[keep]
+            counts = face_count[k]
+            offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+            return np.repeat(i, counts), np.repeat(face_first[k], counts) + offsets
+
+        i, j = near_faces(spheres)
         p, q = spheres[i], face_prim[j]
         add(SPHERE_PLANE, p, q, 0, 2 * np.pi * scale[p].max(axis=1), face_plane[j])
         i, j = overlapping(spheres, spheres)
@@ -145,7 +162,7 @@ class Curves:
         keep = (q > p) & uniform[p] & uniform[q]
         p, q = p[keep], q[keep]
         add(SPHERE_SPHERE, p, q, 0, 2 * np.pi * np.minimum(scale[p].max(axis=1), scale[q].max(axis=1)))
-        i, j = overlapping(cones, face_prim)
+        i, j = near_faces(cones)
         p, q, plane = cones[i], face_prim[j], face_plane[j]
         size = scale[p].max(axis=1)
         # the face's normal in the cone's frame: nearer the axis's direction, parametrize by angle
@@ -158,6 +175,42 @@ class Curves:
         for cap, k in ((0, 0), (TOP_CAP, 1)):
             crossing = (r[p, k] > 0) & (np.linalg.norm(normal[:, :2], axis=1) > 1e-9 * np.abs(normal[:, 2]))
             add(CAP_PLANE, p[crossing], q[crossing], cap, 2 * r[p[crossing], k] * size[crossing], plane[crossing])
+        # Faces of two different box or convex leaves: the line where their planes meet,
+        # clipped to the overlap of the leaves' boxes (where the CSG edge can be).
+        f, j = near_faces(with_faces)
+        i = face_first[f]                                     # each face of leaf with_faces[f] ...
+        i = np.repeat(i, face_count[f]) + (np.arange(face_count[f].sum())
+                                           - np.repeat(np.cumsum(face_count[f]) - face_count[f], face_count[f]))
+        j = np.repeat(j, face_count[f])                       # ... against each nearby face
+        keep = face_prim[i] < face_prim[j]
+        i, j = i[keep], j[keep]
+        if len(i):
+            p, q = face_prim[i], face_prim[j]
+            inverse = np.linalg.inv(to_world)
+            normal_p = np.einsum("pk,pkj->pj", face_plane[i, :3], inverse[p, :3, :3])   # world q . x = e
+            normal_q = np.einsum("pk,pkj->pj", face_plane[j, :3], inverse[q, :3, :3])
+            e_p = face_plane[i, 3] + np.einsum("pk,pk->p", normal_p, to_world[p, :3, 3])
+            e_q = face_plane[j, 3] + np.einsum("pk,pk->p", normal_q, to_world[q, :3, 3])
+            direction = np.cross(normal_p, normal_q)
+            d2 = np.einsum("pk,pk->p", direction, direction)
+            scale_pq = np.linalg.norm(normal_p, axis=1) * np.linalg.norm(normal_q, axis=1)
+            crossing = d2 > 1e-12 * scale_pq ** 2
+            pq = np.einsum("pk,pk->p", normal_p, normal_q)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                foot = (((e_p * np.einsum("pk,pk->p", normal_q, normal_q) - e_q * pq)[:, None] * normal_p
+                         + (e_q * np.einsum("pk,pk->p", normal_p, normal_p) - e_p * pq)[:, None] * normal_q)
+                        / d2[:, None])
+                unit = direction / np.sqrt(d2)[:, None]
+                lo = np.maximum(flat.prim_lower[p], flat.prim_lower[q])
+                hi = np.minimum(flat.prim_upper[p], flat.prim_upper[q])
+                margin = 1e-3 * np.max(hi - lo, axis=1, keepdims=True)
+                t1, t2 = (lo - margin - foot) / unit, (hi + margin - foot) / unit
+                near = np.max(np.where(np.abs(unit) > 1e-12, np.minimum(t1, t2), -np.inf), axis=1)
+                far = np.min(np.where(np.abs(unit) > 1e-12, np.maximum(t1, t2), np.inf), axis=1)
+                inside = np.all((np.abs(unit) > 1e-12) | ((foot >= lo - margin) & (foot <= hi + margin)), axis=1)
+            crossing &= inside & (near < far) & np.isfinite(near) & np.isfinite(far)
+            data = np.column_stack([face_plane[i], face_plane[j], near, far])[crossing]
+            add(PLANE_PLANE, p[crossing], q[crossing], 0, (far - near)[crossing], data)
         kind, a, b, extra, length, data = (np.concatenate(column) for column in zip(*parts))
         self.count = len(kind)
         self.kind, self.a, self.b = kind.astype(np.uint32), a.astype(np.uint32), b.astype(np.uint32)
@@ -297,6 +350,18 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     x_ss_w, dx_ss_w = _circle(t_a + between * (h / dist), dr.safe_sqrt(r_a * r_a - h * h), between / dist, phi)
     valid_ss = (dist < r_a + r_b) & (dist > dr.abs(r_a - r_b))
 
+    # Two face planes, each q . x = e in world space (q = M^-T n, e = d + q . t): their line,
+    # from its point nearest the origin along the unit direction over [near, far] of the data.
+    q_a = dr.rcp(m_a).T @ mi.Vector3f(data[2], data[3], data[4])
+    q_b = inv_b.T @ mi.Vector3f(data[6], data[7], data[8])
+    e_a, e_b = data[5] + dr.dot(q_a, t_a), data[9] + dr.dot(q_b, t_b)
+    line = dr.cross(q_a, q_b)
+    ab = dr.dot(q_a, q_b)
+    foot = ((e_a * dr.squared_norm(q_b) - e_b * ab) * q_a + (e_b * dr.squared_norm(q_a) - e_a * ab) * q_b) \
+        / dr.squared_norm(line)
+    unit = dr.normalize(line)
+    x_pp, dx_pp = foot + unit * dr.lerp(data[10], data[11], u), unit * (data[11] - data[10])
+
     x_c = dr.select(kind == SPHERE_SILHOUETTE, x_sil, zero)
     dx_c = dr.select(kind == SPHERE_SILHOUETTE, dx_sil, zero)
     for k, x_k, dx_k in ((CONE_SILHOUETTE, x_cone, dx_cone), (CIRCLE, x_rim, dx_rim), (SEGMENT, x_seg, dx_seg),
@@ -308,6 +373,8 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     dx = m_a @ dx_c
     x = dr.select(kind == SPHERE_SPHERE, x_ss_w, x)
     dx = dr.select(kind == SPHERE_SPHERE, dx_ss_w, dx)
+    x = dr.select(kind == PLANE_PLANE, x_pp, x)
+    dx = dr.select(kind == PLANE_PLANE, dx_pp, dx)
     # phi = 2 pi u for the circles
     circle = (kind == SPHERE_SILHOUETTE) | (kind == CIRCLE) | (kind == SPHERE_PLANE) | (kind == SPHERE_SPHERE)
     dx = dr.select(circle, dr.two_pi * dx, dx)

@@ -128,6 +128,20 @@ def test_hexagonal_prism_minus_sphere(key, weights):
     assert abs(ratio - 1) > 0.5 and correlation < 0.5, (ratio, correlation)
 
 
+NOTCH = csg.Box(2.0) - csg.Box(1.0).rotate((1, 1, 0), 25).translate((0.8, -0.8, 0.8))
+
+
+@pytest.mark.parametrize("key, weights", [("primitive_rotation", [0, 0, 0, 0, 0, 1]),
+                                          ("primitive_translation", [0, 0, 0, 1, 0, 0]),
+                                          ("primitive_scale", [0, 1])],
+                         ids=["angle", "x", "size"])
+def test_box_notched_by_a_rotated_box(key, weights):
+    """Where two boxes' faces meet (the lines of their planes) and the cutting box's own
+    edges, as the cutting box turns, moves and grows."""
+    ratio, correlation = check(NOTCH, key, weights, spp=512, eps=0.01)
+    assert abs(ratio - 1) > 0.3 or correlation < 0.6, (ratio, correlation)
+
+
 def _cheese_hole_radius(hole):
     """The 20-hole Cheese seen close up (fov 6) around one hole, whose radius (its sphere's
     diagonal) moves: (model, weights, view)."""
