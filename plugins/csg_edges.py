@@ -16,13 +16,14 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
 - CONE_SILHOUETTE: the two contour lines of a cone or cylinder side (one curve per line).
 - CIRCLE: a fixed circle of a leaf's canonical frame: the rims of cones and cylinders.
 - SEGMENT: a box edge (corners of the canonical cube).
-- POLY_EDGE: an edge of a convex polyhedron leaf (prisms, GDML polyhedra), between two of
-  its canonical vertices.
-- SPHERE_PLANE: where a sphere leaf meets the plane of a box's or convex polyhedron's face
-  (a CSG edge of holes cut into them), in the sphere's canonical frame.
+- POLY_EDGE: an edge of a convex polyhedron leaf (prisms, GDML polyhedra) or of a mesh
+  leaf (where its two triangles are not coplanar), between two canonical vertices.
+- SPHERE_PLANE: where a sphere leaf meets the plane of a box's, convex polyhedron's or mesh
+  triangle's face (a CSG edge of holes cut into them), in the sphere's canonical frame.
 - SPHERE_SPHERE: where two sphere leaves with uniform scales meet.
-- PLANE_PLANE: where faces of two box or convex leaves meet (a notch cut by a box), the
-  line of the two planes in world space over the overlap of the leaves' boxes.
+- PLANE_PLANE: where faces of two box, convex or mesh leaves meet (a notch cut by a box),
+  not two meshes' triangles: the line of the two planes in world space over the overlap of
+  the faces' boxes.
 - CONE_PLANE: where a cone or cylinder side meets the plane of such a face, in closed form
   in the cone's canonical frame (z as a function of the angle, or the angle as a function
   of z on two branches when the plane is nearer the axis's direction).
@@ -30,10 +31,10 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
 
 Each is listed where it may exist (the leaves' boxes overlap); the integrator drops points
 the camera does not see, and whether a point is on the boundary of the CSG solid is left
-to the radiance difference itself, which is zero across a curve inside the solid. Curves of the other leaves
-(tori, quadrics, meshes) and the general curves where a cylinder, cone or torus meets
-another leaf are not listed yet (`docs/plugins.md` says which derivatives are
-missing).
+to the radiance difference itself, which is zero across a curve inside the solid. Not
+listed yet (`docs/plugins.md` says which derivatives are missing): curves of tori and
+quadrics, where two meshes' triangles meet, and the general curves where a cylinder, cone
+or torus meets anything but a plane face.
 """
 from __future__ import annotations
 
@@ -72,6 +73,25 @@ def _polyhedron_edges(planes, vertices, tolerance=1e-9):
     return np.array(edges).reshape(-1, 2, 3)
 
 
+def _mesh_edges(triangles, normals, tolerance=1e-9):
+    """Canonical end points (E, 2, 3) of a closed mesh's edges whose two triangles are not
+    coplanar (`triangles` rows as layout.TRIANGLE_FLOATS: vertices a, b, c at 0, 4, 8)."""
+    corners = np.stack([triangles[:, 0:3], triangles[:, 4:7], triangles[:, 8:11]], axis=1)
+    ends = np.stack([corners, np.roll(corners, -1, axis=1)], axis=2).reshape(-1, 2, 3)   # (3T, 2, 3)
+    # each edge's end points in lexicographic order, so that both its triangles list it alike
+    greater, equal = ends[:, 0] > ends[:, 1], ends[:, 0] == ends[:, 1]
+    swap = greater[:, 0] | (equal[:, 0] & (greater[:, 1] | (equal[:, 1] & greater[:, 2])))
+    ends[swap] = ends[swap, ::-1]
+    _, edge = np.unique(ends.reshape(-1, 6), axis=0, return_inverse=True)
+    edge = edge.ravel()
+    face = np.repeat(np.arange(len(triangles)), 3)
+    order = np.argsort(edge, kind="stable")
+    edge, face = edge[order], face[order]
+    pairs = np.flatnonzero(edge[1:] == edge[:-1])
+    bent = np.einsum("ij,ij->i", normals[face[pairs]], normals[face[pairs + 1]]) < 1 - tolerance
+    return ends[order][pairs[bent]]
+
+
 class Curves:
     """The curves of one csg shape: per curve its kind, leaves a and b, an extra int (edge,
     branch), DATA_FLOATS of data (the cone radii of leaf a, then a face plane of leaf b, an
@@ -100,8 +120,9 @@ class Curves:
             parts.append((np.full(len(a), kind), a, np.broadcast_to(b, a.shape), np.broadcast_to(extra, a.shape),
                           np.broadcast_to(length, a.shape), rows))
 
-        # Face planes (canonical normal, offset) of boxes and convex polyhedra, one row each.
-        face_prim, face_plane = [], []
+        # Face planes (canonical normal, offset) of boxes, convex polyhedra and mesh triangles,
+        # one row each, with a world box per face (its leaf's, or the triangle's own).
+        face_prim, face_plane, face_lower, face_upper = [], [], [], []
         for p in boxes:
             for face in range(6):
                 normal = np.zeros(3)
@@ -117,8 +138,33 @@ class Curves:
             world = np.einsum("ij,ekj->eki", to_world[p, :3, :3], ends)
             add(POLY_EDGE, np.full(len(ends), p), p, 0, np.linalg.norm(world[:, 1] - world[:, 0], axis=1),
                 ends.reshape(-1, 6))
+        meshes = np.flatnonzero(flat.prim_shape == K.MESH)
+        # A mesh's triangles run from its plane start to the next chunk's (engine.lowering).
+        chunk_starts = np.unique(np.append(flat.prim_plane_start[np.isin(flat.prim_shape, (K.CONVEX, K.MESH))],
+                                           len(flat.planes)))
+        for p in meshes:
+            start = flat.prim_plane_start[p]
+            end = chunk_starts[np.searchsorted(chunk_starts, start, side="right")]
+            ends = _mesh_edges(flat.triangles[start:end], flat.planes[start:end, :3])
+            world = np.einsum("ij,ekj->eki", to_world[p, :3, :3], ends)
+            add(POLY_EDGE, np.full(len(ends), p), p, 0, np.linalg.norm(world[:, 1] - world[:, 0], axis=1),
+                ends.reshape(-1, 6))
+            triangles = flat.triangles[start:end]
+            corners = np.einsum("ij,tkj->tki", to_world[p, :3, :3],
+                                np.stack([triangles[:, 0:3], triangles[:, 4:7], triangles[:, 8:11]], axis=1))
+            corners += to_world[p, :3, 3]
+            face_prim.extend([p] * len(triangles))
+            face_plane.extend(flat.planes[start:end])
+            face_lower.extend(corners.min(axis=1))
+            face_upper.extend(corners.max(axis=1))
         face_prim = np.array(face_prim, np.int64)
         face_plane = np.array(face_plane).reshape(-1, 4)
+        face_lower = np.concatenate([flat.prim_lower[face_prim[:len(face_prim) - len(face_lower)]],
+                                     np.reshape(face_lower, (-1, 3))])
+        face_upper = np.concatenate([flat.prim_upper[face_prim[:len(face_prim) - len(face_upper)]],
+                                     np.reshape(face_upper, (-1, 3))])
+        face_size = np.linalg.norm(face_upper - face_lower, axis=1)
+        from_mesh = flat.prim_shape[face_prim] == K.MESH
 
         add(SPHERE_SILHOUETTE, spheres, spheres, 0, 2 * np.pi * scale[spheres].max(axis=1))
         for k in (0, 1):
@@ -151,11 +197,16 @@ class Curves:
             i, k = i[keep], k[keep]
             counts = face_count[k]
             offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-            return np.repeat(i, counts), np.repeat(face_first[k], counts) + offsets
+            i, f = np.repeat(i, counts), np.repeat(face_first[k], counts) + offsets
+            # a mesh's triangles only where their own boxes reach the leaf's
+            near = np.all((face_lower[f] <= flat.prim_upper[first[i]]) & (flat.prim_lower[first[i]] <= face_upper[f]),
+                          axis=1)
+            return i[near], f[near]
 
         i, j = near_faces(spheres)
         p, q = spheres[i], face_prim[j]
-        add(SPHERE_PLANE, p, q, 0, 2 * np.pi * scale[p].max(axis=1), face_plane[j])
+        # (a triangle holds at most about pi times its box's diagonal of the circle)
+        add(SPHERE_PLANE, p, q, 0, np.minimum(2 * np.pi * scale[p].max(axis=1), np.pi * face_size[j]), face_plane[j])
         i, j = overlapping(spheres, spheres)
         p, q = spheres[i], spheres[j]
         uniform = np.ptp(scale, axis=1) <= 1e-6 * scale.max(axis=1)
@@ -164,7 +215,7 @@ class Curves:
         add(SPHERE_SPHERE, p, q, 0, 2 * np.pi * np.minimum(scale[p].max(axis=1), scale[q].max(axis=1)))
         i, j = near_faces(cones)
         p, q, plane = cones[i], face_prim[j], face_plane[j]
-        size = scale[p].max(axis=1)
+        size = np.minimum(scale[p].max(axis=1), 0.5 * face_size[j])   # (a triangle holds less of the curve)
         # the face's normal in the cone's frame: nearer the axis's direction, parametrize by angle
         normal = np.einsum("pk,pkj->pj", np.einsum("pk,pkj->pj", plane[:, :3], np.linalg.inv(to_world[q])[:, :3, :3]),
                            to_world[p, :3, :3])
@@ -182,7 +233,9 @@ class Curves:
         i = np.repeat(i, face_count[f]) + (np.arange(face_count[f].sum())
                                            - np.repeat(np.cumsum(face_count[f]) - face_count[f], face_count[f]))
         j = np.repeat(j, face_count[f])                       # ... against each nearby face
-        keep = face_prim[i] < face_prim[j]
+        # (not two meshes' triangles: pairs of those are not listed)
+        keep = (face_prim[i] < face_prim[j]) & ~(from_mesh[i] & from_mesh[j])
+        keep &= np.all((face_lower[i] <= face_upper[j]) & (face_lower[j] <= face_upper[i]), axis=1)
         i, j = i[keep], j[keep]
         if len(i):
             p, q = face_prim[i], face_prim[j]
@@ -201,8 +254,8 @@ class Curves:
                          + (e_q * np.einsum("pk,pk->p", normal_p, normal_p) - e_p * pq)[:, None] * normal_q)
                         / d2[:, None])
                 unit = direction / np.sqrt(d2)[:, None]
-                lo = np.maximum(flat.prim_lower[p], flat.prim_lower[q])
-                hi = np.minimum(flat.prim_upper[p], flat.prim_upper[q])
+                lo = np.maximum(face_lower[i], face_lower[j])
+                hi = np.minimum(face_upper[i], face_upper[j])
                 margin = 1e-3 * np.max(hi - lo, axis=1, keepdims=True)
                 t1, t2 = (lo - margin - foot) / unit, (hi + margin - foot) / unit
                 near = np.max(np.where(np.abs(unit) > 1e-12, np.minimum(t1, t2), -np.inf), axis=1)

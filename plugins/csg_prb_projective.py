@@ -46,22 +46,23 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
 
     `csg_prb`'s derivatives (interior: shading at a fixed visible primitive) plus those of
     the boundaries the camera sees move: silhouettes of sphere, cylinder and cone leaves,
-    edges of boxes and convex polyhedra (prisms), cylinder and cone rims, the edges where a
-    sphere meets a face of a box or polyhedron or another sphere (the CSG edges of holes),
-    where a cylinder's or cone's side or caps meet such a face, and where the faces of two
-    boxes or polyhedra meet. Points on those curves are sampled in proportion to their
-    length in the image, each moving with the shapes' `primitive_to_world` (and so with the
-    named parameters); the estimate is the radiance difference across the curve (camera rays
-    either side of it, at two offsets extrapolated to the curve) times the curve's motion
-    normal to itself in the image (Mitsuba's `prb_projective` treats its own meshes the same
-    way; Li et al. 2018's edge sampling). A curve point the camera does not see (a ray from
-    it towards the camera is blocked) adds nothing, and one that is not on the solid's
-    boundary has no radiance difference across it. Forward and backward mode.
+    edges of boxes, convex polyhedra (prisms) and mesh leaves, cylinder and cone rims, the
+    edges where a sphere meets a face of a box, polyhedron or mesh, or another sphere (the
+    CSG edges of holes), where a cylinder's or cone's side or caps meet such a face, and
+    where the faces of two boxes or polyhedra (or one of them and a mesh's triangle) meet.
+    Points on those curves are sampled in proportion to their length in the image, each
+    moving with the shapes' `primitive_to_world` (and so with the named parameters); the
+    estimate is the radiance difference across the curve (camera rays either side of it, at
+    two offsets extrapolated to the curve) times the curve's motion normal to itself in the
+    image (Mitsuba's `prb_projective` treats its own meshes the same way; Li et al. 2018's
+    edge sampling). A curve point the camera does not see (a ray from it towards the camera
+    is blocked) adds nothing, and one that is not on the solid's boundary has no radiance
+    difference across it. Forward and backward mode.
 
-    Not yet differentiated: the curves of tori, quadrics and mesh leaves, the curves where
-    cylinders, cones or tori meet anything but a box or polyhedron face, or non-uniformly
-    scaled spheres meet, and indirect visibility (shadows, reflections). Perspective
-    cameras only.
+    Not yet differentiated: the curves of tori and quadrics, where two meshes' triangles
+    meet, where cylinders, cones or tori meet anything but a plane face, or non-uniformly
+    scaled spheres meet, and indirect visibility (shadows, reflections). Perspective cameras
+    only.
 
     .. code-block:: python
 

@@ -142,6 +142,20 @@ def test_box_notched_by_a_rotated_box(key, weights):
     assert abs(ratio - 1) > 0.3 or correlation < 0.6, (ratio, correlation)
 
 
+OCTAHEDRON = csg.Mesh(1.3 * np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float),
+                      [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+MESH_LEAF = OCTAHEDRON.rotate((0, 0, 1), 20) - csg.Sphere(0.5).translate((0.5, -0.5, 0.3))
+
+
+@pytest.mark.parametrize("key, weights", [("primitive_translation", [1, 0, 0, 0, 0, 0]),
+                                          ("primitive_scale", [1, 0])], ids=["mesh x", "mesh size"])
+def test_mesh_leaf_minus_sphere(key, weights):
+    """A mesh leaf (an octahedron): its edges, and the circles where the hole's sphere meets
+    its triangles' planes, as the mesh moves and grows."""
+    ratio, correlation = check(MESH_LEAF, key, weights, spp=512, eps=0.01)
+    assert abs(ratio - 1) > 0.3 or correlation < 0.6, (ratio, correlation)
+
+
 def _cheese_hole_radius(hole):
     """The 20-hole Cheese seen close up (fov 6) around one hole, whose radius (its sphere's
     diagonal) moves: (model, weights, view)."""
