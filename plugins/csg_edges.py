@@ -73,10 +73,20 @@ def _polyhedron_edges(planes, vertices, tolerance=1e-9):
     return np.array(edges).reshape(-1, 2, 3)
 
 
+def _triangle_corners(triangles):
+    """(T, 3, 3) corners of triangles stored as layout.TRIANGLE_FLOATS rows (a, b, c at 0, 4, 8)."""
+    return np.stack([triangles[:, 0:3], triangles[:, 4:7], triangles[:, 8:11]], axis=1)
+
+
+def _ranges(first, counts):
+    """The indices first[k] + 0 ... counts[k] - 1 for every k, concatenated."""
+    return np.repeat(first, counts) + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+
+
 def _mesh_edges(triangles, normals, tolerance=1e-9):
     """Canonical end points (E, 2, 3) of a closed mesh's edges whose two triangles are not
-    coplanar (`triangles` rows as layout.TRIANGLE_FLOATS: vertices a, b, c at 0, 4, 8)."""
-    corners = np.stack([triangles[:, 0:3], triangles[:, 4:7], triangles[:, 8:11]], axis=1)
+    coplanar."""
+    corners = _triangle_corners(triangles)
     ends = np.stack([corners, np.roll(corners, -1, axis=1)], axis=2).reshape(-1, 2, 3)   # (3T, 2, 3)
     # each edge's end points in lexicographic order, so that both its triangles list it alike
     greater, equal = ends[:, 0] > ends[:, 1], ends[:, 0] == ends[:, 1]
@@ -111,6 +121,12 @@ class Curves:
         r = flat.prim_param
         parts = []                                  # (kind, a, b, extra, length, data)
 
+        def add_edges(p, ends):
+            """A polyhedron's or mesh's edges, canonical end points (E, 2, 3)."""
+            world = np.einsum("ij,ekj->eki", to_world[p, :3, :3], ends)
+            add(POLY_EDGE, np.full(len(ends), p), p, 0, np.linalg.norm(world[:, 1] - world[:, 0], axis=1),
+                ends.reshape(-1, 6))
+
         def add(kind, a, b, extra, length, data=None):
             a = np.atleast_1d(a)
             rows = np.zeros((len(a), DATA_FLOATS))
@@ -134,10 +150,7 @@ class Curves:
             for plane in flat.planes[start:start + count]:
                 face_prim.append(p)
                 face_plane.append(plane)
-            ends = _polyhedron_edges(flat.planes[start:start + count], flat.plane_vertices[start])
-            world = np.einsum("ij,ekj->eki", to_world[p, :3, :3], ends)
-            add(POLY_EDGE, np.full(len(ends), p), p, 0, np.linalg.norm(world[:, 1] - world[:, 0], axis=1),
-                ends.reshape(-1, 6))
+            add_edges(p, _polyhedron_edges(flat.planes[start:start + count], flat.plane_vertices[start]))
         meshes = np.flatnonzero(flat.prim_shape == K.MESH)
         # A mesh's triangles run from its plane start to the next chunk's (engine.lowering).
         chunk_starts = np.unique(np.append(flat.prim_plane_start[np.isin(flat.prim_shape, (K.CONVEX, K.MESH))],
@@ -145,13 +158,9 @@ class Curves:
         for p in meshes:
             start = flat.prim_plane_start[p]
             end = chunk_starts[np.searchsorted(chunk_starts, start, side="right")]
-            ends = _mesh_edges(flat.triangles[start:end], flat.planes[start:end, :3])
-            world = np.einsum("ij,ekj->eki", to_world[p, :3, :3], ends)
-            add(POLY_EDGE, np.full(len(ends), p), p, 0, np.linalg.norm(world[:, 1] - world[:, 0], axis=1),
-                ends.reshape(-1, 6))
+            add_edges(p, _mesh_edges(flat.triangles[start:end], flat.planes[start:end, :3]))
             triangles = flat.triangles[start:end]
-            corners = np.einsum("ij,tkj->tki", to_world[p, :3, :3],
-                                np.stack([triangles[:, 0:3], triangles[:, 4:7], triangles[:, 8:11]], axis=1))
+            corners = np.einsum("ij,tkj->tki", to_world[p, :3, :3], _triangle_corners(triangles))
             corners += to_world[p, :3, 3]
             face_prim.extend([p] * len(triangles))
             face_plane.extend(flat.planes[start:end])
@@ -195,9 +204,7 @@ class Curves:
             i, k = overlapping(first, with_faces)
             keep = first[i] != with_faces[k]
             i, k = i[keep], k[keep]
-            counts = face_count[k]
-            offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-            i, f = np.repeat(i, counts), np.repeat(face_first[k], counts) + offsets
+            i, f = np.repeat(i, face_count[k]), _ranges(face_first[k], face_count[k])
             # a mesh's triangles only where their own boxes reach the leaf's
             near = np.all((face_lower[f] <= flat.prim_upper[first[i]]) & (flat.prim_lower[first[i]] <= face_upper[f]),
                           axis=1)
@@ -229,9 +236,7 @@ class Curves:
         # Faces of two different box or convex leaves: the line where their planes meet,
         # clipped to the overlap of the leaves' boxes (where the CSG edge can be).
         f, j = near_faces(with_faces)
-        i = face_first[f]                                     # each face of leaf with_faces[f] ...
-        i = np.repeat(i, face_count[f]) + (np.arange(face_count[f].sum())
-                                           - np.repeat(np.cumsum(face_count[f]) - face_count[f], face_count[f]))
+        i = _ranges(face_first[f], face_count[f])             # each face of leaf with_faces[f] ...
         j = np.repeat(j, face_count[f])                       # ... against each nearby face
         # (not two meshes' triangles: pairs of those are not listed)
         keep = (face_prim[i] < face_prim[j]) & ~(from_mesh[i] & from_mesh[j])
