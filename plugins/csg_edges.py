@@ -173,7 +173,6 @@ class Curves:
         face_upper = np.concatenate([flat.prim_upper[face_prim[:len(face_prim) - len(face_upper)]],
                                      np.reshape(face_upper, (-1, 3))])
         face_size = np.linalg.norm(face_upper - face_lower, axis=1)
-        from_mesh = flat.prim_shape[face_prim] == K.MESH
 
         add(SPHERE_SILHOUETTE, spheres, spheres, 0, 2 * np.pi * scale[spheres].max(axis=1))
         for k in (0, 1):
@@ -198,11 +197,16 @@ class Curves:
         # Faces of the leaves in `second` order: prims with faces, their first face and count.
         with_faces, face_first, face_count = np.unique(face_prim, return_index=True, return_counts=True)
 
-        def near_faces(first):
+        def near_faces(first, later_and_not_both_meshes=False):
             """Pairs (i, face) of an index into `first` and a face of another leaf whose box
-            overlaps leaf first[i]'s (boxes tested per leaf, then expanded to its faces)."""
+            overlaps leaf first[i]'s (boxes tested per leaf, then expanded to its faces);
+            optionally only leaves after first[i] and not two meshes (face pairs: each once,
+            and not the triangle pairs of two meshes, which are not listed)."""
             i, k = overlapping(first, with_faces)
             keep = first[i] != with_faces[k]
+            if later_and_not_both_meshes:
+                mesh = flat.prim_shape == K.MESH
+                keep &= (first[i] < with_faces[k]) & ~(mesh[first[i]] & mesh[with_faces[k]])
             i, k = i[keep], k[keep]
             i, f = np.repeat(i, face_count[k]), _ranges(face_first[k], face_count[k])
             # a mesh's triangles only where their own boxes reach the leaf's
@@ -235,12 +239,10 @@ class Curves:
             add(CAP_PLANE, p[crossing], q[crossing], cap, 2 * r[p[crossing], k] * size[crossing], plane[crossing])
         # Faces of two different box or convex leaves: the line where their planes meet,
         # clipped to the overlap of the leaves' boxes (where the CSG edge can be).
-        f, j = near_faces(with_faces)
+        f, j = near_faces(with_faces, later_and_not_both_meshes=True)
         i = _ranges(face_first[f], face_count[f])             # each face of leaf with_faces[f] ...
         j = np.repeat(j, face_count[f])                       # ... against each nearby face
-        # (not two meshes' triangles: pairs of those are not listed)
-        keep = (face_prim[i] < face_prim[j]) & ~(from_mesh[i] & from_mesh[j])
-        keep &= np.all((face_lower[i] <= face_upper[j]) & (face_lower[j] <= face_upper[i]), axis=1)
+        keep = np.all((face_lower[i] <= face_upper[j]) & (face_lower[j] <= face_upper[i]), axis=1)
         i, j = i[keep], j[keep]
         if len(i):
             p, q = face_prim[i], face_prim[j]
