@@ -228,7 +228,7 @@ class Curves:
         p, q, plane = cones[i], face_prim[j], face_plane[j]
         size = np.minimum(scale[p].max(axis=1), 0.5 * face_size[j])   # (a triangle holds less of the curve)
         # the face's normal in the cone's frame: nearer the axis's direction, parametrize by angle
-        normal = np.einsum("pk,pkj->pj", np.einsum("pk,pkj->pj", plane[:, :3], np.linalg.inv(to_world[q])[:, :3, :3]),
+        normal = np.einsum("pk,pkj->pj", np.einsum("pk,pkj->pj", plane[:, :3], flat.prim_to_canonical[q, :, :3]),
                            to_world[p, :3, :3])
         flat_ish = np.abs(normal[:, 2]) >= np.linalg.norm(normal[:, :2], axis=1)
         add(CONE_PLANE, p[flat_ish], q[flat_ish], 0, 2 * np.pi * size[flat_ish], plane[flat_ish])
@@ -246,9 +246,9 @@ class Curves:
         i, j = i[keep], j[keep]
         if len(i):
             p, q = face_prim[i], face_prim[j]
-            inverse = np.linalg.inv(to_world)
-            normal_p = np.einsum("pk,pkj->pj", face_plane[i, :3], inverse[p, :3, :3])   # world q . x = e
-            normal_q = np.einsum("pk,pkj->pj", face_plane[j, :3], inverse[q, :3, :3])
+            to_canonical = flat.prim_to_canonical
+            normal_p = np.einsum("pk,pkj->pj", face_plane[i, :3], to_canonical[p, :, :3])   # world q . x = e
+            normal_q = np.einsum("pk,pkj->pj", face_plane[j, :3], to_canonical[q, :, :3])
             e_p = face_plane[i, 3] + np.einsum("pk,pk->p", normal_p, to_world[p, :3, 3])
             e_q = face_plane[j, 3] + np.einsum("pk,pk->p", normal_q, to_world[q, :3, 3])
             direction = np.cross(normal_p, normal_q)

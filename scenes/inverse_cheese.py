@@ -108,9 +108,9 @@ def main(argv=None):
     opt = mi.ad.Adam(lr=args.lr)
     opt["translation"] = mi.Float(start_translation.ravel().astype(np.float32))
     opt["scale"] = mi.Float(start_scale.astype(np.float32))
-    fixed = np.ones(count, np.float32)
-    fixed[0] = 0.0                                                      # the box's rows get no update
-    keep = mi.Float(np.repeat(fixed, 3))
+    free = np.ones(count, np.float32)
+    free[0] = 0.0                                                       # the box stays where it is
+    keep = mi.Float(np.repeat(free, 3))
     base_t = mi.Float(start_translation.ravel().astype(np.float32))
     history = []
     args.out.mkdir(parents=True, exist_ok=True)
@@ -123,7 +123,7 @@ def main(argv=None):
         loss = 0.0
         for k, (scene, p, target) in enumerate(zip(scenes, params, targets)):
             p["object.primitive_translation"] = keep * opt["translation"] + (1 - keep) * base_t
-            p["object.primitive_scale"] = opt["scale"] * mi.Float(fixed) + mi.Float(1 - fixed)
+            p["object.primitive_scale"] = opt["scale"] * mi.Float(free) + mi.Float(1 - free)
             p.update()
             image = mi.render(scene, p, spp=args.spp, seed=it * len(scenes) + k + 1)
             if k == 0 and first is None:
