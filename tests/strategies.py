@@ -115,6 +115,39 @@ def _operations(children):
     ), translate=0.5)
 
 
+@st.composite
+def unions_of_leaves(draw):
+    """A union of 2-12 transformed leaves (a set for the kernel), alone, subtracted from a box,
+    subtracting one, or intersected with a random tree."""
+    members = union(*draw(st.lists(transformed(primitives()), min_size=2, max_size=12)))
+    box = Box(tuple(draw(_f(1.5, 3.5)) for _ in range(3)))
+    how = draw(st.sampled_from(["alone", "holes", "cut", "and"]))
+    if how == "holes":
+        return box - members
+    if how == "cut":
+        return members - box.scale(0.5)
+    if how == "and":
+        return members & draw(models(max_leaves=3))
+    return members
+
+
+@st.composite
+def stacked_columns(draw):
+    """2-6 columns stacked along z, each turned about its axis and shifted a little: every
+    neighbour's caps coincide in the model but not in the primitives' frames. Alone, or
+    drilled through a block (where a false cap would show as a wall across the tunnel)."""
+    z, parts = 0.0, []
+    for _ in range(draw(st.integers(2, 6))):
+        h = draw(_f(0.3, 0.8))
+        offset = (draw(_f(-0.1, 0.1)), draw(_f(-0.1, 0.1)))
+        parts.append(draw(_column(h)).rotate("z", draw(_f(-180, 180))).translate((*offset, z + h / 2)))
+        z += h
+    tower = union(*parts).translate((0, 0, -z / 2))
+    if draw(st.booleans()):
+        tower = Box((2.0, 2.0, 0.8 * z)) - tower
+    return draw(transformed(st.just(tower), translate=1.0))
+
+
 def models(max_leaves: int = 8):
     """Random CSG trees (depth up to about 5) of transformed primitives."""
     return st.recursive(transformed(primitives()), _operations, max_leaves=max_leaves)

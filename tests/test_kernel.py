@@ -15,7 +15,7 @@ from agreement import compare
 from mitsuba_csg.engine.device import TraversalOptions
 from mitsuba_csg.engine.grouping import group_trees
 from mitsuba_csg.scenes import cheese
-from strategies import make_points, make_rays, models
+from strategies import make_points, make_rays, models, stacked_columns, unions_of_leaves
 
 pytestmark = pytest.mark.usefixtures("jit_variant")   # every test on every JIT backend here
 
@@ -34,7 +34,8 @@ TRAVERSALS = {
     "no_skip": TraversalOptions(skip_to_sibling=False),
     "no_bound": TraversalOptions(bounded_search=False),
     "no_near_first": TraversalOptions(near_first=False),
-    "none": TraversalOptions(False, False, False, False),
+    "no_sets": TraversalOptions(sets=False),
+    "none": TraversalOptions(False, False, False, False, False),
 }
 
 
@@ -115,6 +116,27 @@ def test_random_trees_agree_with_reference(model, seed, form, traversal):
     o, d = make_rays(seed, 96, targets=targets)
     hits = trace(model, o, d, form, traversal)
     compare(model, hits, o, d)
+
+
+@pytest.mark.parametrize("traversal", ["default", "no_sets"])
+@pytest.mark.parametrize("form", FORMS)
+@given(model=unions_of_leaves(), seed=st.integers(0, 2**31))
+def test_unions_of_many_leaves_agree_with_reference(model, seed, form, traversal):
+    """Sets (unions of leaves searched as one n-ary node): overlapping, nested and disjoint
+    members of every primitive, non-convex ones included, alone, cut from a box or cutting it."""
+    targets = [leaf.matrix[:3, 3] for leaf in model.leaves()]
+    o, d = make_rays(seed, 128, targets=targets)
+    compare(model, trace(model, o, d, form, traversal), o, d)
+
+
+@pytest.mark.parametrize("traversal", ["default", "no_sets"])
+@given(model=stacked_columns(), seed=st.integers(0, 2**31))
+def test_towers_of_touching_columns_have_no_inner_faces(model, seed, traversal):
+    """A union of columns stacked face to face, each in its own frame: a ray along the tower
+    passes from member to member through faces that are one event (a set's exit chain)."""
+    o, d = make_rays(seed, 96, radius=6.0, target=1.5)
+    prepared = csg.prepare(model, traversal=TRAVERSALS[traversal])
+    compare(model, csg.trace(prepared, o, d), o, d, coincident=True)
 
 
 @given(model=models(max_leaves=8), seed=st.integers(0, 2**31))

@@ -162,3 +162,21 @@ def test_optimize_accepts_its_own_output_and_single_primitives():
     lo, hi = opt.bounds()
     np.testing.assert_allclose(lo, [-1, -1, -1])
     np.testing.assert_allclose(hi, [1, 1, 1])
+
+
+def test_subtracted_unions_become_one_set():
+    """A box minus many spheres comes out of the optimizer as box - (one union of every
+    sphere), which the kernel searches as one set; the solid is the same."""
+    from mitsuba_csg.engine import layout as K
+    from mitsuba_csg.engine.backend import default_backend
+    from mitsuba_csg.engine.device import upload
+    model = cheese(300, seed=3)
+    opt, stats = csg.optimize(model)
+    assert stats["set_chains_merged"] >= 1
+    flat = opt.flat
+    assert np.count_nonzero(flat.node_kind == K.DIFFERENCE) == 1
+    tree = upload(flat, default_backend())
+    flags = np.asarray(tree.node_record.numpy()).reshape(-1, 4)[:, 0]
+    roots = np.flatnonzero(K.flags_set(flags))
+    assert len(roots) == 1 and flat.node_right[flat.root] == roots[0]
+    _check_same_solid(model, opt, seed=5, n_rays=300)

@@ -41,10 +41,13 @@ from __future__ import annotations
 import drjit as dr
 
 from . import layout as K
-from . import shapes
-from .device import KernelTree, gather_prim, node_record, scene_rays
-from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, LEAF, LOOP_CLOSER, MISS, NO_LEAF, RET_CLOSER, RET_L,
-                     RET_L_ELSE_LOOP_R, RET_R, RET_R_ELSE_LOOP_L, UNION)
+from .device import KernelTree, node_record, scene_rays
+from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, LEAF, LOOP_CLOSER, MISS, NO_LEAF, RET_CLOSER, RET_L, RET_L_ELSE_LOOP_R,
+                     RET_R, RET_R_ELSE_LOOP_L, UNION)
+from .leaf_events import box_span as _box_span
+from .leaf_events import complement_class as _complement_class
+from .leaf_events import next_event
+from .leaf_events import tie_window as _tie_window
 
 # Events of different primitives closer than a tie window are one event for the state
 # tables (docs/accuracy.md). The window is TIE_TOLERANCE x (the scene's extent + the ray
@@ -61,41 +64,9 @@ GOTO_L_FRESH, GOTO_R_FRESH, GOTO_L_LOOP, GOTO_R_LOOP, CLASSIFY, RETURN, DONE = r
 SAVE_L, LOAD_L, LOAD_R = range(3)
 SWAPPED_FRAME = 4
 
-def _complement_class(cls):
-    """The class of the same event for the complement: enter <-> exit, a miss is an exit at infinity."""
-    return dr.select(cls == MISS, EXIT, cls ^ 1)
-
-
-def _box_span(b, tree, node, o, inv_d, active):
-    """(near, far) of the ray's parameter inside the node's box (NaN for an empty box)."""
-    lo4 = dr.gather(b.Array4f, tree.node_box, node * 2, active)
-    hi4 = dr.gather(b.Array4f, tree.node_box, node * 2 + 1, active)
-    lo, hi = b.Array3f(lo4.x, lo4.y, lo4.z), b.Array3f(hi4.x, hi4.y, hi4.z)
-    t1, t2 = (lo - o) * inv_d, (hi - o) * inv_d
-    return dr.max(dr.minimum(t1, t2)), dr.min(dr.maximum(t1, t2))
-
-
 def _box_hit(b, tree, node, o, inv_d, t_start, tmax, active):
     near, far = _box_span(b, tree, node, o, inv_d, active)
     return (near <= far) & (far >= t_start) & (near <= tmax)
-
-
-def _leaf_hit(b, tree, flags, prim, o, d, t_start, tie):
-    """(t, info) of a leaf node's first event after t_start, complement applied."""
-    rows, shape, param, plane_start, plane_count = gather_prim(b, tree, prim)
-    # A mesh's crossings within a tie window after t_start are the event at t_start again.
-    mesh = (tree.triangles, tree.mesh_nodes, 2.0 * tie) if tree.has_meshes else None
-    t, face, cls, slope = shapes.first_event(b, shape, rows, param, tree.planes, plane_start, plane_count, o, d,
-                                             t_start, mesh)
-    complemented = K.flags_negative(flags)
-    # A complemented leaf swaps enter/exit; missing it means being inside it forever.
-    cls = dr.select(complemented, _complement_class(cls), cls)
-    return t, K.hit_info(cls, dr.select(complemented, FLIP_BIT, 0), face, slope)
-
-
-def _tie_window(b, tie, slope):
-    """How far in t two events may lie apart and still be one event, for a SLOPE exponent."""
-    return tie * b.Float(b.UInt32(2) << slope)
 
 
 def _tie_tolerance(b, tree, o, d):
@@ -198,8 +169,11 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
             swapped = dr.select(state == GOTO_L_FRESH, right_first, swapped)
         child = dr.select(go_right ^ swapped, node_right, node_left)
         near, far = _box_span(b, tree, child, o, inv_d, going)
-        child_flags, child_prim, _, _ = node_record(b, tree, child, going)
+        child_flags, _, _, _ = node_record(b, tree, child, going)
+        # A set (a union of leaves) is searched as one node, like a leaf (engine.leaf_events).
         child_is_leaf = K.flags_kind(child_flags) == LEAF
+        if dr.hint(tree.options.sets, mode="scalar"):
+            child_is_leaf |= K.flags_set(child_flags)
         reaches = going & (near <= far) & (far >= t_start)      # the box lies (partly) after t_start
         in_box = reaches & (near <= child_bound)
         # Past a bound short of tmax, the subtree's state is known (outside if bounded, inside
@@ -223,12 +197,16 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         info_c = dr.select(co_bounded, b.UInt32(EXIT), b.UInt32(MISS))   # co-bounded: inside forever
         info_c = dr.select(provisional, dr.select(co_bounded, b.UInt32(EXIT), b.UInt32(ENTER)) | K.PROVISIONAL_BIT,
                            info_c)
-        if in_box & child_is_leaf:
-            t_c, info_c = _leaf_hit(b, tree, child_flags, child_prim, o, d, t_start, tie)
+        leaf_c = b.UInt32(child)
+        searching = in_box & child_is_leaf
+        if searching:
+            t_c, leaf_c, info_c, walked = next_event(b, tree, child, o, d, inv_d, t_start, child_bound, tmax, tie,
+                                                     searching)
+            steps += walked
         known = going & ~descend
         set_r, set_l = known & go_right, known & ~go_right
-        t_r, leaf_r, info_r = dr.select(set_r, t_c, t_r), dr.select(set_r, child, leaf_r), dr.select(set_r, info_c, info_r)
-        t_l, leaf_l, info_l = dr.select(set_l, t_c, t_l), dr.select(set_l, child, leaf_l), dr.select(set_l, info_c, info_l)
+        t_r, leaf_r, info_r = dr.select(set_r, t_c, t_r), dr.select(set_r, leaf_c, leaf_r), dr.select(set_r, info_c, info_r)
+        t_l, leaf_l, info_l = dr.select(set_l, t_c, t_l), dr.select(set_l, leaf_c, leaf_l), dr.select(set_l, info_c, info_l)
         state = dr.select(descend, GOTO_L_FRESH,
                           dr.select(known, dr.select(fresh_left, GOTO_R_FRESH, CLASSIFY), state))
 

@@ -28,10 +28,10 @@ class TraversalOptions:
     (the KernelTree) and would try to assign to a frozen one.
     """
 
-    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first")
+    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets")
 
     def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True,
-                 near_first: bool = True):
+                 near_first: bool = True, sets: bool = True):
         self.restart_at_sibling = restart_at_sibling   # a loop restarts the looping child at its sibling's event
         self.skip_to_sibling = skip_to_sibling         # a fresh second child starts at the first child's event
                                                        # when that child fixes the node's state
@@ -39,11 +39,13 @@ class TraversalOptions:
                                                        # first child's event (provisional results beyond)
         self.near_first = near_first                   # a fresh union / intersection search starts with the
                                                        # child whose box the ray enters first
+        self.sets = sets                               # unions of leaves are searched as n-ary nodes
+                                                       # (engine.leaf_events)
 
     def __repr__(self) -> str:
         return (f"TraversalOptions(restart_at_sibling={self.restart_at_sibling}, "
                 f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search}, "
-                f"near_first={self.near_first})")
+                f"near_first={self.near_first}, sets={self.sets})")
 
 
 @dataclass
@@ -58,7 +60,7 @@ class KernelTree:
     mesh_nodes: object      # Float, 8 per mesh BVH node (layout.MESH_NODE_FLOATS)
     table: object           # UInt32 state tables, 27 entries (layout.TABLE_ARRAY: union, intersection, group)
     root: int
-    root_is_leaf: bool
+    root_wrapped: bool      # the root is a virtual union over a lone leaf or set
     stack_size: int
     num_nodes: int
     num_prims: int
@@ -68,25 +70,30 @@ class KernelTree:
     inv_scale: float
     has_meshes: bool        # the kernel includes the mesh BVH walk only where there are mesh leaves
     has_groups: bool = False  # the kernel tests the GROUP flag only where there are group nodes
+    shape_kinds: frozenset = frozenset(K.SHAPE_CODES.values())   # the leaves' shape codes: the kernel
+                                                                  # intersects only these
     options: TraversalOptions = field(default_factory=TraversalOptions)
 
 
 def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
            options: TraversalOptions | None = None) -> KernelTree:
-    """Copy a FlatTree to device arrays (float32). A lone leaf gets a virtual union root."""
+    """Copy a FlatTree to device arrays (float32). A lone leaf or set gets a virtual union root."""
     b = backend
     kind, neg = flat.node_kind.copy(), flat.node_negative.copy()
     left, right, parent = flat.node_left.copy(), flat.node_right.copy(), flat.node_parent.copy()
     lower, upper = flat.node_lower.copy(), flat.node_upper.copy()
     group = np.zeros(len(kind), bool) if flat.node_group is None else flat.node_group.copy()
-    root_is_leaf = bool(kind[flat.root] == K.LEAF)
-    if root_is_leaf:
-        # The automaton starts at an operation: root' = union(leaf, nothing), where the
-        # dummy leaf has an empty box, which the box test rejects, so it is never intersected.
+    sets = _set_roots(kind, neg, group, left, right, parent, flat.node_height)
+    wrap = bool(kind[flat.root] == K.LEAF) or bool(sets[flat.root])
+    if wrap:
+        # The automaton starts at an operation and searches leaves and sets as its children:
+        # root' = union(root, nothing), where the dummy leaf has an empty box, which the box
+        # test rejects, so it is never intersected.
         n = len(kind)
         kind = np.concatenate([kind, [K.UNION, K.LEAF]])
         neg = np.concatenate([neg, [False, False]])
         group = np.concatenate([group, [False, False]])
+        sets = np.concatenate([sets, [False, False]])
         left = np.concatenate([left, [flat.root, 0]])
         right = np.concatenate([right, [n + 1, -1]])
         parent = np.concatenate([parent, [-1, n]])
@@ -96,7 +103,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         root = n
     else:
         root = flat.root
-    height = int(flat.node_height.max(initial=0)) + (1 if root_is_leaf else 0)
+    height = int(flat.node_height.max(initial=0)) + (1 if wrap else 0)
     if height > MAX_STACK:
         raise TreeTooDeepError(f"the CSG tree is {height} operations deep; the kernel allows {MAX_STACK}. "
                                "Optimize it (csg.optimize) or restructure it.")
@@ -115,7 +122,8 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     box = np.hstack([lower - pad, zeros, upper + pad, zeros])
     box[empty] = np.nan
     order, left_high = _child_order(kind, left, right, lower, upper)
-    flags = K.node_flags(kind.astype(np.uint32), neg.astype(np.uint32), order, left_high, group.astype(np.uint32))
+    flags = K.node_flags(kind.astype(np.uint32), neg.astype(np.uint32), order, left_high, group.astype(np.uint32),
+                         sets.astype(np.uint32))
     node_record = np.stack([flags, left, np.where(right < 0, 0, right), np.where(parent < 0, 0, parent)], 1)
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
     # world -> canonical after scene -> world (x = centre + x' / inv_scale)
@@ -148,10 +156,11 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         planes=owned(b.Float, planes.astype(np.float32).ravel()),
         triangles=owned(b.Float, triangles.astype(np.float32).ravel()),
         mesh_nodes=owned(b.Float, mesh_nodes.ravel()), table=owned(b.UInt32, K.TABLE_ARRAY),
-        root=int(root), root_is_leaf=root_is_leaf, stack_size=stack_size_class(height), num_nodes=n_nodes,
+        root=int(root), root_wrapped=wrap, stack_size=stack_size_class(height), num_nodes=n_nodes,
         num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent,
         centre=tuple(float(c) for c in centre), inv_scale=float(inv_scale),
-        has_meshes=bool(np.any(flat.prim_shape == K.MESH)), has_groups=bool(np.any(group)), options=options or TraversalOptions())
+        has_meshes=bool(np.any(flat.prim_shape == K.MESH)), has_groups=bool(np.any(group)),
+        shape_kinds=frozenset(int(c) for c in np.unique(flat.prim_shape)), options=options or TraversalOptions())
 
 
 def _scene_frame(lower, upper) -> tuple[np.ndarray, float]:
@@ -229,6 +238,23 @@ def _child_order(kind, left, right, lower, upper):
     order[ops] = np.where(gap != 0, axis, K.NO_ORDER)
     left_high[ops] = gap > 0
     return order, left_high
+
+
+def _set_roots(kind, neg, group, left, right, parent, height):
+    """Per node, whether it roots a maximal subtree of unions of positive leaves (a set,
+    `engine.leaf_events`); co-bounded (positive-form) unions and group nodes are not set members."""
+    pure = (kind == K.LEAF) & ~neg
+    plain_union = (kind == K.UNION) & ~neg & ~group
+    # Bottom-up, one vectorized step per level.
+    ops = np.flatnonzero(kind != K.LEAF)
+    ops = ops[np.argsort(height[ops], kind="stable")]
+    levels = np.flatnonzero(np.diff(height[ops])) + 1
+    for at in np.split(ops, levels):
+        pure[at] = plain_union[at] & pure[left[at]] & pure[right[at]]
+    parent_pure = np.zeros(len(kind), bool)
+    has_parent = parent >= 0
+    parent_pure[has_parent] = pure[parent[has_parent]]
+    return pure & (kind != K.LEAF) & ~parent_pure
 
 
 def stack_size_class(height: int) -> int:

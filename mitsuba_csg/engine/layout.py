@@ -15,6 +15,8 @@ Node flags word (one per flat-tree node)::
     bit  5    LEFT_HIGH: the left child's box centre is the higher one on the ORDER axis
     bit  6    GROUP: a union node that joins separate solids (`engine.grouping`): its next
               event is the nearer of its children's, whatever their classes
+    bit  7    SET: the root of a subtree of unions of positive leaves, searched as one n-ary
+              node (`engine.leaf_events`)
 
 Hit info word (one per returned hit)::
 
@@ -64,11 +66,16 @@ ORDER_MASK = 0x3
 NO_ORDER = 3
 LEFT_HIGH_BIT = 0x20
 GROUP_BIT = 0x40
+SET_BIT = 0x80
 
 
-def node_flags(kind, negative, order=NO_ORDER, left_high=0, group=0):
+def node_flags(kind, negative, order=NO_ORDER, left_high=0, group=0, set_root=0):
     """The flags word of nodes (numpy integer and bool arrays)."""
-    return kind | (negative << 2) | (order << ORDER_SHIFT) | (left_high << 5) | (group << 6)
+    return kind | (negative << 2) | (order << ORDER_SHIFT) | (left_high << 5) | (group << 6) | (set_root << 7)
+
+
+def flags_set(flags):
+    return (flags & SET_BIT) != 0
 
 
 def flags_group(flags):

@@ -427,7 +427,7 @@ def _torus_events(b, o, d, param):
 
 
 def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o_world, d_world, t_start,
-                mesh=None):
+                mesh=None, kinds=None):
     """(t, face, class, slope) of the first boundary event of one primitive after t_start (per lane).
 
     `slope` is the event's SLOPE exponent (`engine.layout`): how steeply the ray meets the
@@ -441,9 +441,9 @@ def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o
                   dr.dot(b.Array3f(xf_rows[1].x, xf_rows[1].y, xf_rows[1].z), d_world),
                   dr.dot(b.Array3f(xf_rows[2].x, xf_rows[2].y, xf_rows[2].z), d_world))
     t, face, cls, plane_normal = _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d,
-                                                    t_start, mesh)
+                                                    t_start, mesh, kinds)
     plane = b.Array4f(plane_normal.x, plane_normal.y, plane_normal.z, 0.0)
-    _, grad = surface_function(b.module, shape, face, param, plane, o + t * d)
+    _, grad = surface_function(b.module, shape, face, param, plane, o + t * d, kinds)
     # The world normal is M^T grad for the rows M of world -> canonical; grad . d is the same
     # in both frames.
     normal = b.Array3f(*(xf_rows[0][i] * grad.x + xf_rows[1][i] * grad.y + xf_rows[2][i] * grad.z
@@ -460,7 +460,7 @@ def _slope_exponent(b, cos):
 
 
 @dr.syntax
-def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d, t_start, mesh):
+def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d, t_start, mesh, kinds):
     width = dr.width(t_start)
     near = dr.full(b.Float, dr.inf, width)
     far = dr.full(b.Float, -dr.inf, width)
@@ -471,42 +471,57 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
     t = dr.full(b.Float, dr.inf, width)
     face = dr.zeros(b.UInt32, width)
     cls = dr.full(b.UInt32, MISS, width)
+    present = _present(kinds)
     for kind in _INTERVAL_SHAPES:
-        if shape == kind.code:
-            near, far, near_face, far_face = kind.interval(b, o, d, param, plane_buf, plane_start, plane_count)
-    if shape == CONVEX:
-        near, far, near_face, far_face, near_normal, far_normal = _convex(b, o, d, param, plane_buf, plane_start,
-                                                                          plane_count)
-    if dr.hint(mesh is not None, mode="scalar"):
+        if dr.hint(kind.code in present, mode="scalar"):
+            if shape == kind.code:
+                near, far, near_face, far_face = kind.interval(b, o, d, param, plane_buf, plane_start, plane_count)
+    if dr.hint(CONVEX in present, mode="scalar"):
+        if shape == CONVEX:
+            near, far, near_face, far_face, near_normal, far_normal = _convex(b, o, d, param, plane_buf, plane_start,
+                                                                              plane_count)
+    if dr.hint(mesh is not None and MESH in present, mode="scalar"):
         if shape == MESH:
             t, face, cls, near_normal = _mesh(b, o, d, param, plane_buf, plane_start, mesh, t_start)
             far_normal = b.Array3f(near_normal)
-    if shape == QUADRIC:
-        t, face, cls = _quadric_event(b, o, d, param, t_start)
-    if shape == TORUS:
-        # Pick the first root after t_start; its parity among the roots is its class.
-        events, oks = _torus_events(b, o, d, param)
-        seen = dr.zeros(b.UInt32, width)
-        found = dr.zeros(b.Bool, width)
-        for ev, ok in zip(events, oks):
-            take = ok & ~found & (ev > t_start)
-            t = dr.select(take, ev, t)
-            cls = dr.select(take, seen & 1, cls)
-            found |= take
-            seen += dr.select(ok, 1, 0)
-    elif (shape != MESH) & (shape != QUADRIC):
-        t, face, cls = _interval_event(b, near, far, near_face, far_face, t_start)
+    if dr.hint(QUADRIC in present, mode="scalar"):
+        if shape == QUADRIC:
+            t, face, cls = _quadric_event(b, o, d, param, t_start)
+    own = (shape == MESH) | (shape == QUADRIC)
+    if dr.hint(TORUS in present, mode="scalar"):
+        own |= shape == TORUS
+        if shape == TORUS:
+            # Pick the first root after t_start; its parity among the roots is its class.
+            events, oks = _torus_events(b, o, d, param)
+            seen = dr.zeros(b.UInt32, width)
+            found = dr.zeros(b.Bool, width)
+            for ev, ok in zip(events, oks):
+                take = ok & ~found & (ev > t_start)
+                t = dr.select(take, ev, t)
+                cls = dr.select(take, seen & 1, cls)
+                found |= take
+                seen += dr.select(ok, 1, 0)
+    t_i, face_i, cls_i = _interval_event(b, near, far, near_face, far_face, t_start)
+    t, face, cls = dr.select(own, t, t_i), dr.select(own, face, face_i), dr.select(own, cls, cls_i)
     return t, face, cls, dr.select(cls == ENTER, near_normal, far_normal)
 
 
-def surface_function(m, shape, face, param, plane, x):
+def _present(kinds):
+    """The shape codes a kernel must handle: all of them unless the tree says which."""
+    return frozenset(kind.code for kind in SHAPES) if kinds is None else kinds
+
+
+def surface_function(m, shape, face, param, plane, x, kinds=None):
     """(g, grad g) of a primitive's `face` at canonical point x; g = 0 on the surface, < 0 inside.
 
     `m` is a Dr.Jit module (detached or AD) and `plane` the face's plane for convex primitives.
     grad g is the outward (unnormalized) normal: the hit normal and its derivatives use it.
     """
     g = grad = None
+    present = _present(kinds)
     for kind in SHAPES:
+        if kind.code not in present:
+            continue
         g_k, grad_k = kind.surface(m, face, param, plane, x)
         g = g_k if g is None else dr.select(shape == kind.code, g_k, g)
         grad = grad_k if grad is None else dr.select(shape == kind.code, grad_k, grad)

@@ -1,0 +1,199 @@
+"""The next event of a leaf, or of a set: a union of leaves searched as one n-ary node.
+
+The automaton (`engine.automaton`) asks every leaf for its first event after `t_start`. A
+subtree made only of unions of positive leaves (the Cheese's holes, a city block's
+buildings) is a *set* (`layout.SET_BIT` on its root): instead of walking it with the state
+tables, which re-descend the looping child for every event, it is searched here as a BVH
+over its own node boxes, and a lone leaf is a set of one. The union of the members:
+
+* is inside at t+ exactly where some member is: a member whose first event after t is an
+  exit *contains* the point. Containing members' boxes hold the point, so box culling by
+  the ray's interval from t never drops them;
+* outside, its next event is the nearest member entry (a closest-hit query: boxes past the
+  nearest entry found so far, or past the caller's bound, are not opened);
+* inside, it leaves at the farthest exit of the containing members, unless another member
+  takes over there: an entry before that exit (or within the tie window after it, a touching
+  face), or a second containing member that is not convex (it may re-enter before the
+  farthest exit). Then a new pass starts at that exit, where members whose entry lies
+  within the tie window count as containing, as touching faces do in the state tables.
+
+Culling by the caller's bound (`t_bound` of the automaton: events past it cannot change the
+parent's answer) may hide an entry; the result is then provisional at the bound, as for a
+subtree whose box lies past it.
+"""
+from __future__ import annotations
+
+import drjit as dr
+
+from . import layout as K
+from . import shapes
+from .device import gather_prim, node_record
+from .layout import CONVEX, ENTER, EXIT, FLIP_BIT, LEAF, MESH, MISS, NO_LEAF, QUADRIC, TORUS
+
+_NO_NODE = 0xFFFFFFFF
+# Shapes whose inside along a ray may be several intervals.
+_NON_CONVEX = (TORUS, MESH, QUADRIC)
+
+
+def complement_class(cls):
+    """The class of the same event for the complement: enter <-> exit, a miss is an exit at infinity."""
+    return dr.select(cls == MISS, EXIT, cls ^ 1)
+
+
+def tie_window(b, tie, slope):
+    """How far in t two events may lie apart and still be one event, for a SLOPE exponent."""
+    return tie * b.Float(b.UInt32(2) << slope)
+
+
+def box_span(b, tree, node, o, inv_d, active):
+    """(near, far) of the ray's parameter inside the node's box (NaN for an empty box)."""
+    lo4 = dr.gather(b.Array4f, tree.node_box, node * 2, active)
+    hi4 = dr.gather(b.Array4f, tree.node_box, node * 2 + 1, active)
+    lo, hi = b.Array3f(lo4.x, lo4.y, lo4.z), b.Array3f(hi4.x, hi4.y, hi4.z)
+    t1, t2 = (lo - o) * inv_d, (hi - o) * inv_d
+    return dr.max(dr.minimum(t1, t2)), dr.min(dr.maximum(t1, t2))
+
+
+def leaf_hit(b, tree, flags, prim, o, d, t_start, tie):
+    """(t, info) of a leaf node's first event after t_start, complement applied."""
+    rows, shape, param, plane_start, plane_count = gather_prim(b, tree, prim)
+    # A mesh's crossings within a tie window after t_start are the event at t_start again.
+    mesh = (tree.triangles, tree.mesh_nodes, 2.0 * tie) if tree.has_meshes else None
+    t, face, cls, slope = shapes.first_event(b, shape, rows, param, tree.planes, plane_start, plane_count, o, d,
+                                             t_start, mesh, tree.shape_kinds)
+    complemented = K.flags_negative(flags)
+    # A complemented leaf swaps enter/exit; missing it means being inside it forever.
+    cls = dr.select(complemented, complement_class(cls), cls)
+    non_convex = dr.zeros(b.Bool, dr.width(t))
+    for code in _NON_CONVEX:
+        if code in tree.shape_kinds:
+            non_convex |= shape == code
+    return t, K.hit_info(cls, dr.select(complemented, FLIP_BIT, 0), face, slope), non_convex
+
+
+@dr.syntax
+def next_event(b, tree, root, o, d, inv_d, t_start, bound, tmax, tie, active):
+    """(t, leaf node, info, iterations) of the next event after t_start of the leaf or set at `root`.
+
+    `bound`: entries past it need not be found (a provisional result at the bound instead,
+    where some box past it was not opened and bound < tmax). Lanes where `active` is false
+    do nothing.
+    """
+    width = dr.width(t_start)
+    node = dr.select(active, root, _NO_NODE)
+    t_c = b.Float(t_start)                       # this pass's start
+    from_t = b.Float(t_start)                    # where the member at `node` is intersected from
+    again = dr.zeros(b.Bool, width)              # `node` is a member re-intersected from its tie entry
+    stack_node = dr.alloc_local(b.UInt32, tree.stack_size)
+    stack_near = dr.alloc_local(b.Float, tree.stack_size)
+    sp = dr.zeros(b.UInt32, width)
+    en_t, en_leaf, en_info = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
+        dr.full(b.UInt32, MISS, width)           # nearest entry of a member not containing t_c
+    ex_t, ex_leaf, ex_info = dr.full(b.Float, -dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
+        dr.full(b.UInt32, MISS, width)           # farthest exit of the members containing t_c
+    containing = dr.zeros(b.UInt32, width)
+    non_convex_inside = dr.zeros(b.Bool, width)
+    culled = dr.zeros(b.Bool, width)             # a box past `bound` was not opened
+    inside = dr.zeros(b.Bool, width)             # an earlier pass ended inside: the union exit candidate is
+    out_t, out_leaf, out_info = b.Float(ex_t), b.UInt32(ex_leaf), b.UInt32(ex_info)   # out_*
+    res_t, res_leaf, res_info = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
+        dr.full(b.UInt32, MISS, width)
+    done = ~b.Bool(active)
+    iterations = dr.zeros(b.UInt32, width)
+
+    while dr.hint(~done, label="csg_set_walk"):
+        iterations += 1
+        has_node = node != _NO_NODE
+        flags, left, right, _ = node_record(b, tree, node, has_node)
+        is_leaf = has_node & (K.flags_kind(flags) == LEAF)
+
+        # ---- A member: its first event after from_t ----
+        t_m = dr.full(b.Float, dr.inf, width)
+        info_m = dr.full(b.UInt32, MISS, width)
+        odd_m = dr.zeros(b.Bool, width)
+        if is_leaf:
+            t_m, info_m, odd_m = leaf_hit(b, tree, flags, left, o, d, from_t, tie)
+        cls_m = K.info_class(info_m)
+        # In a pass after an exit, an entry within the tie window is a touching face: the
+        # member contains the point; its exit comes from a second intersection from there.
+        w_m = tie_window(b, tie, dr.minimum(K.info_slope(info_m), K.info_slope(out_info)))
+        tie_entry = is_leaf & inside & ~again & (cls_m == ENTER) & (t_m - t_c <= w_m)
+        contains = is_leaf & ~tie_entry & (cls_m == EXIT)
+        farther = contains & (t_m > ex_t)
+        ex_t, ex_leaf, ex_info = dr.select(farther, t_m, ex_t), dr.select(farther, node, ex_leaf), \
+            dr.select(farther, info_m, ex_info)
+        containing = dr.select(contains, containing + 1, containing)
+        non_convex_inside |= contains & odd_m
+        nearer = is_leaf & ~tie_entry & (cls_m == ENTER) & (t_m < en_t)
+        en_t, en_leaf, en_info = dr.select(nearer, t_m, en_t), dr.select(nearer, node, en_leaf), \
+            dr.select(nearer, info_m, en_info)
+        from_t = dr.select(tie_entry, t_m, t_c)
+        again = tie_entry
+        next_node = dr.select(tie_entry, node, _NO_NODE)
+
+        # ---- An inner node: open the children whose boxes the ray meets in [t_c, cull] ----
+        cull = dr.minimum(en_t, bound)
+        expanding = has_node & ~is_leaf
+        if expanding:
+            near_l, far_l = box_span(b, tree, left, o, inv_d, expanding)
+            near_r, far_r = box_span(b, tree, right, o, inv_d, expanding)
+            reach_l = (near_l <= far_l) & (far_l >= t_c)
+            reach_r = (near_r <= far_r) & (far_r >= t_c)
+            culled |= expanding & ((reach_l & (near_l > bound)) | (reach_r & (near_r > bound)))
+            hit_l, hit_r = reach_l & (near_l <= cull), reach_r & (near_r <= cull)
+            right_first = hit_r & (~hit_l | (near_r < near_l))
+            both = expanding & hit_l & hit_r
+            stack_node.write(dr.select(right_first, left, right), sp, both)
+            stack_near.write(dr.select(right_first, near_l, near_r), sp, both)
+            sp = dr.select(both, sp + 1, sp)
+            next_node = dr.select(expanding & (hit_l | hit_r), dr.select(right_first, right, left), next_node)
+
+        # ---- Nothing to do next: pop the nearest waiting box, unless it lies past cull ----
+        cull = dr.minimum(en_t, bound)
+        pop = ~done & (next_node == _NO_NODE) & (sp > 0)
+        top = dr.select(pop, sp - 1, 0)
+        popped, popped_near = stack_node.read(top, pop), stack_near.read(top, pop)
+        sp = dr.select(pop, sp - 1, sp)
+        culled |= pop & (popped_near > bound)
+        next_node = dr.select(pop & (popped_near <= cull), popped, next_node)
+        node = next_node
+
+        # ---- End of a pass ----
+        ended = ~done & (node == _NO_NODE) & (sp == 0)
+        found_inside = containing > 0
+        window = tie_window(b, tie, dr.minimum(K.info_slope(ex_info), K.info_slope(en_info)))
+        # Inside, but an entry near the exit may have been culled: only the state up to the bound is known.
+        unsure = found_inside & culled & (ex_t + window > bound) & (bound < tmax)
+        chain = found_inside & ~unsure & dr.isfinite(ex_t) & \
+            ((en_t <= ex_t + window) | ((containing > 1) & non_convex_inside))
+        exit_now = found_inside & ~unsure & ~chain
+        exit_before = ~found_inside & inside
+        entry = ~found_inside & ~inside & dr.isfinite(en_t) & ((en_t <= bound) | ~culled)
+        outside_to_bound = ~found_inside & ~inside & ~entry & culled & (bound < tmax)
+        t_res = dr.select(unsure | outside_to_bound, bound,
+                          dr.select(exit_now, ex_t, dr.select(exit_before, out_t, dr.select(entry, en_t, dr.inf))))
+        leaf_res = dr.select(exit_now, ex_leaf, dr.select(exit_before, out_leaf,
+                                                          dr.select(entry, en_leaf, b.UInt32(root))))
+        info_res = dr.select(exit_now, ex_info, dr.select(exit_before, out_info, dr.select(entry, en_info, MISS)))
+        info_res = dr.select(unsure, b.UInt32(EXIT) | K.PROVISIONAL_BIT,
+                             dr.select(outside_to_bound, b.UInt32(ENTER) | K.PROVISIONAL_BIT, info_res))
+        finish = ended & ~chain
+        res_t, res_leaf, res_info = dr.select(finish, t_res, res_t), dr.select(finish, leaf_res, res_leaf), \
+            dr.select(finish, info_res, res_info)
+        done |= finish
+        # A new pass from the farthest exit.
+        restart = ended & chain
+        inside |= restart
+        out_t, out_leaf, out_info = dr.select(restart, ex_t, out_t), dr.select(restart, ex_leaf, out_leaf), \
+            dr.select(restart, ex_info, out_info)
+        t_c = dr.select(restart, ex_t, t_c)
+        from_t = dr.select(restart, ex_t, from_t)
+        node = dr.select(restart, root, node)
+        en_t, en_leaf, en_info = dr.select(restart, dr.inf, en_t), dr.select(restart, NO_LEAF, en_leaf), \
+            dr.select(restart, MISS, en_info)
+        ex_t, ex_leaf, ex_info = dr.select(restart, -dr.inf, ex_t), dr.select(restart, NO_LEAF, ex_leaf), \
+            dr.select(restart, MISS, ex_info)
+        containing = dr.select(restart, 0, containing)
+        non_convex_inside &= ~restart
+        culled &= ~restart
+    return res_t, res_leaf, res_info, iterations
