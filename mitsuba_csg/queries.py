@@ -81,7 +81,7 @@ class RayHits:
     prim: object       # UInt32: index into Model.leaves(); 0xFFFFFFFF on a miss
     entering: object   # Bool: the ray enters the solid at the hit
     finished: object   # Bool: False where the iteration bound stopped the lane
-    steps: object      # UInt32: automaton iterations per lane
+    steps: object      # UInt32: automaton iterations plus set-walk iterations per lane
     info: object = None  # UInt32: class, flip bit and face of the hit (engine.layout)
 
 
@@ -150,7 +150,7 @@ class Hits:
     prim: np.ndarray       # (N,) int64 index into model.leaves(); -1 on a miss
     entering: np.ndarray   # (N,) bool
     unfinished: int        # rays stopped by the iteration bound (their t is NaN)
-    steps: np.ndarray      # (N,) automaton iterations
+    steps: np.ndarray      # (N,) automaton iterations plus set-walk iterations (engine.leaf_events)
 
 
 def _rays(a, what: str) -> np.ndarray:

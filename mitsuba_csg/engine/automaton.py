@@ -42,8 +42,8 @@ import drjit as dr
 
 from . import layout as K
 from .device import KernelTree, node_record, scene_rays
-from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, LEAF, LOOP_CLOSER, MISS, NO_LEAF, RET_CLOSER, RET_L, RET_L_ELSE_LOOP_R,
-                     RET_R, RET_R_ELSE_LOOP_L, UNION)
+from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, INTERSECTION, LEAF, LOOP_CLOSER, MAX_SLOPE, MISS, NO_LEAF,
+                     RET_CLOSER, RET_L, RET_L_ELSE_LOOP_R, RET_R, RET_R_ELSE_LOOP_L, UNION)
 from .leaf_events import box_span as _box_span
 from .leaf_events import complement_class as _complement_class
 from .leaf_events import next_event
@@ -81,7 +81,8 @@ def _tie_tolerance(b, tree, o, d):
 
 @dr.syntax
 def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
-    """Run the automaton. Returns (t, leaf node, info, finished, steps) per lane, all detached.
+    """Run the automaton. Returns (t, leaf node, info, finished, steps) per lane, all detached;
+    steps are automaton iterations plus set-walk iterations (the work done).
 
     Lanes where `active` is false do no work and miss (an integrator's finished paths, or
     shadow rays it does not need, would otherwise be traced in full).
@@ -109,7 +110,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
     t_bound = b.Float(tmax)                         # events of `node` past this do not matter
     swapped = dr.zeros(b.Bool, n)                   # registers L / R hold `node`'s right / left child
     sp = dr.zeros(b.UInt32, n)                      # shared depth of both stacks
-    steps = dr.zeros(b.UInt32, n)
+    steps = dr.zeros(b.UInt32, n)                  # automaton iterations (the runaway bound counts these)
+    walked = dr.zeros(b.UInt32, n)                 # set-walk iterations (engine.leaf_events)
     hit_t = dr.alloc_local(b.Float, tree.stack_size)       # hit stack: t (or a saved t_start)
     hit_leaf = dr.alloc_local(b.UInt32, tree.stack_size)   #            leaf node
     hit_info = dr.alloc_local(b.UInt32, tree.stack_size)   #            info word
@@ -158,6 +160,18 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
             # the second child is seen as the tie it is.
             reach = t_l + _tie_window(b, tie, K.info_slope(info_l))
             child_bound = dr.select(second & ~fixes, dr.minimum(t_bound, reach), t_bound)
+        entry_bound = exit_bound = child_bound
+        if tree.options.skip_to_sibling and tree.options.bounded_search:
+            # Searched from the first child's event because that child fixed the node until
+            # then, the second child decides what the node does there by its state alone; its
+            # next event matters only where that state keeps the node's state (union and
+            # difference: the second child inside, so its exit; intersection: outside, so its
+            # entry). The other kind of event is searched only for ties (engine.leaf_events).
+            near_tie = t_l + _tie_window(b, tie, MAX_SLOPE)
+            state_only = second & fixes
+            wants_entry = kind == INTERSECTION
+            entry_bound = dr.select(state_only & ~wants_entry, dr.minimum(child_bound, near_tie), child_bound)
+            exit_bound = dr.select(state_only & wants_entry, dr.minimum(child_bound, near_tie), child_bound)
         if dr.hint(tree.options.near_first, mode="scalar"):
             # A fresh search of a union or intersection takes first the child that lies first
             # along the ray on the node's ORDER axis (as a BVH's ordered traversal does), so
@@ -200,9 +214,9 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         leaf_c = b.UInt32(child)
         searching = in_box & child_is_leaf
         if searching:
-            t_c, leaf_c, info_c, walked = next_event(b, tree, child, o, d, inv_d, t_start, child_bound, tmax, tie,
-                                                     searching)
-            steps += walked
+            t_c, leaf_c, info_c, iterations = next_event(b, tree, child, o, d, inv_d, t_start, entry_bound,
+                                                         exit_bound, tmax, tie, searching)
+            walked += iterations
         known = going & ~descend
         set_r, set_l = known & go_right, known & ~go_right
         t_r, leaf_r, info_r = dr.select(set_r, t_c, t_r), dr.select(set_r, leaf_c, leaf_r), dr.select(set_r, info_c, info_r)
@@ -300,4 +314,4 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
     # A provisional hit at the root can only sit at tmax: nothing before it.
     hit = finished & (K.info_class(info_l) != MISS) & (t_l <= tmax) & ~K.info_provisional(info_l)
     t = dr.select(hit, t_l / k, dr.inf)
-    return t, dr.select(hit, leaf_l, NO_LEAF), info_l, finished, steps
+    return t, dr.select(hit, leaf_l, NO_LEAF), info_l, finished, steps + walked

@@ -28,7 +28,7 @@ import drjit as dr
 from . import layout as K
 from . import shapes
 from .device import gather_prim, node_record
-from .layout import CONVEX, ENTER, EXIT, FLIP_BIT, LEAF, MESH, MISS, NO_LEAF, QUADRIC, TORUS
+from .layout import ENTER, EXIT, FLIP_BIT, LEAF, MAX_SLOPE, MESH, MISS, NO_LEAF, QUADRIC, TORUS
 
 _NO_NODE = 0xFFFFFFFF
 # Shapes whose inside along a ray may be several intervals.
@@ -72,12 +72,12 @@ def leaf_hit(b, tree, flags, prim, o, d, t_start, tie):
 
 
 @dr.syntax
-def next_event(b, tree, root, o, d, inv_d, t_start, bound, tmax, tie, active):
+def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tmax, tie, active):
     """(t, leaf node, info, iterations) of the next event after t_start of the leaf or set at `root`.
 
-    `bound`: entries past it need not be found (a provisional result at the bound instead,
-    where some box past it was not opened and bound < tmax). Lanes where `active` is false
-    do nothing.
+    Outside at t_start, entries past `entry_bound` need not be found; inside, exits past
+    `exit_bound` need not be found. Either way the result may then be provisional at the
+    bound (where it is < tmax): the state up to it. Lanes where `active` is false do nothing.
     """
     width = dr.width(t_start)
     node = dr.select(active, root, _NO_NODE)
@@ -93,11 +93,13 @@ def next_event(b, tree, root, o, d, inv_d, t_start, bound, tmax, tie, active):
         dr.full(b.UInt32, MISS, width)           # farthest exit of the members containing t_c
     containing = dr.zeros(b.UInt32, width)
     non_convex_inside = dr.zeros(b.Bool, width)
-    culled = dr.zeros(b.Bool, width)             # a box past `bound` was not opened
+    culled = dr.zeros(b.Bool, width)             # a box was not opened that may hold an entry that matters
     inside = dr.zeros(b.Bool, width)             # an earlier pass ended inside: the union exit candidate is
     out_t, out_leaf, out_info = b.Float(ex_t), b.UInt32(ex_leaf), b.UInt32(ex_info)   # out_*
     res_t, res_leaf, res_info = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
         dr.full(b.UInt32, MISS, width)
+    # After an exit, only entries within the widest tie window of it matter (touching faces).
+    widest = tie_window(b, tie, MAX_SLOPE)
     done = ~b.Bool(active)
     iterations = dr.zeros(b.UInt32, width)
 
@@ -114,10 +116,14 @@ def next_event(b, tree, root, o, d, inv_d, t_start, bound, tmax, tie, active):
         if is_leaf:
             t_m, info_m, odd_m = leaf_hit(b, tree, flags, left, o, d, from_t, tie)
         cls_m = K.info_class(info_m)
-        # In a pass after an exit, an entry within the tie window is a touching face: the
-        # member contains the point; its exit comes from a second intersection from there.
-        w_m = tie_window(b, tie, dr.minimum(K.info_slope(info_m), K.info_slope(out_info)))
-        tie_entry = is_leaf & inside & ~again & (cls_m == ENTER) & (t_m - t_c <= w_m)
+        # Once inside, the union's inside reaches at least `reach`: a member entered before it
+        # (or within the tie window after it: a touching face) extends it. Its exit comes
+        # from a second intersection from its entry; then it counts as containing.
+        joined = inside | (containing > 0)
+        reach = dr.select(joined, dr.maximum(ex_t, t_c), -dr.inf)
+        w_m = tie_window(b, tie, dr.minimum(K.info_slope(info_m), K.info_slope(dr.select(
+            containing > 0, ex_info, out_info))))
+        tie_entry = is_leaf & joined & ~again & (cls_m == ENTER) & (t_m <= reach + w_m)
         contains = is_leaf & ~tie_entry & (cls_m == EXIT)
         farther = contains & (t_m > ex_t)
         ex_t, ex_leaf, ex_info = dr.select(farther, t_m, ex_t), dr.select(farther, node, ex_leaf), \
@@ -132,14 +138,18 @@ def next_event(b, tree, root, o, d, inv_d, t_start, bound, tmax, tie, active):
         next_node = dr.select(tie_entry, node, _NO_NODE)
 
         # ---- An inner node: open the children whose boxes the ray meets in [t_c, cull] ----
-        cull = dr.minimum(en_t, bound)
+        # Outside: up to the entry bound; inside: up to the reach and its tie window.
+        joined = inside | (containing > 0)
+        reach = dr.maximum(ex_t, t_c) + widest
+        limit = dr.select(inside, reach, dr.select(joined, dr.maximum(entry_bound, reach), entry_bound))
+        cull = dr.minimum(en_t, limit)
         expanding = has_node & ~is_leaf
         if expanding:
             near_l, far_l = box_span(b, tree, left, o, inv_d, expanding)
             near_r, far_r = box_span(b, tree, right, o, inv_d, expanding)
             reach_l = (near_l <= far_l) & (far_l >= t_c)
             reach_r = (near_r <= far_r) & (far_r >= t_c)
-            culled |= expanding & ((reach_l & (near_l > bound)) | (reach_r & (near_r > bound)))
+            culled |= expanding & ((reach_l & (near_l > limit)) | (reach_r & (near_r > limit)))
             hit_l, hit_r = reach_l & (near_l <= cull), reach_r & (near_r <= cull)
             right_first = hit_r & (~hit_l | (near_r < near_l))
             both = expanding & hit_l & hit_r
@@ -149,12 +159,12 @@ def next_event(b, tree, root, o, d, inv_d, t_start, bound, tmax, tie, active):
             next_node = dr.select(expanding & (hit_l | hit_r), dr.select(right_first, right, left), next_node)
 
         # ---- Nothing to do next: pop the nearest waiting box, unless it lies past cull ----
-        cull = dr.minimum(en_t, bound)
+        cull = dr.minimum(en_t, limit)
         pop = ~done & (next_node == _NO_NODE) & (sp > 0)
         top = dr.select(pop, sp - 1, 0)
         popped, popped_near = stack_node.read(top, pop), stack_near.read(top, pop)
         sp = dr.select(pop, sp - 1, sp)
-        culled |= pop & (popped_near > bound)
+        culled |= pop & (popped_near > limit)
         next_node = dr.select(pop & (popped_near <= cull), popped, next_node)
         node = next_node
 
@@ -162,16 +172,18 @@ def next_event(b, tree, root, o, d, inv_d, t_start, bound, tmax, tie, active):
         ended = ~done & (node == _NO_NODE) & (sp == 0)
         found_inside = containing > 0
         window = tie_window(b, tie, dr.minimum(K.info_slope(ex_info), K.info_slope(en_info)))
-        # Inside, but an entry near the exit may have been culled: only the state up to the bound is known.
-        unsure = found_inside & culled & (ex_t + window > bound) & (bound < tmax)
-        chain = found_inside & ~unsure & dr.isfinite(ex_t) & \
-            ((en_t <= ex_t + window) | ((containing > 1) & non_convex_inside))
+        # Another member may take over at the farthest exit: one entered before it (or may
+        # have been, in a box not opened), or a second containing one that may re-enter.
+        take_over = (en_t <= ex_t + window) | ((containing > 1) & non_convex_inside) | culled
+        # Past the exit bound the state is all that matters: inside up to the bound.
+        unsure = found_inside & take_over & (ex_t >= exit_bound) & (exit_bound < tmax)
+        chain = found_inside & ~unsure & dr.isfinite(ex_t) & take_over
         exit_now = found_inside & ~unsure & ~chain
         exit_before = ~found_inside & inside
-        entry = ~found_inside & ~inside & dr.isfinite(en_t) & ((en_t <= bound) | ~culled)
-        outside_to_bound = ~found_inside & ~inside & ~entry & culled & (bound < tmax)
-        t_res = dr.select(unsure | outside_to_bound, bound,
-                          dr.select(exit_now, ex_t, dr.select(exit_before, out_t, dr.select(entry, en_t, dr.inf))))
+        entry = ~found_inside & ~inside & dr.isfinite(en_t) & ((en_t <= entry_bound) | ~culled)
+        outside_to_bound = ~found_inside & ~inside & ~entry & culled & (entry_bound < tmax)
+        t_res = dr.select(unsure, exit_bound, dr.select(outside_to_bound, entry_bound, dr.select(
+            exit_now, ex_t, dr.select(exit_before, out_t, dr.select(entry, en_t, dr.inf)))))
         leaf_res = dr.select(exit_now, ex_leaf, dr.select(exit_before, out_leaf,
                                                           dr.select(entry, en_leaf, b.UInt32(root))))
         info_res = dr.select(exit_now, ex_info, dr.select(exit_before, out_info, dr.select(entry, en_info, MISS)))
