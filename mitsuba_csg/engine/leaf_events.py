@@ -110,32 +110,30 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
         is_leaf = has_node & (K.flags_kind(flags) == LEAF)
 
         # ---- A member: its first event after from_t ----
-        t_m = dr.full(b.Float, dr.inf, width)
-        info_m = dr.full(b.UInt32, MISS, width)
-        odd_m = dr.zeros(b.Bool, width)
+        again_now = dr.zeros(b.Bool, width)
         if is_leaf:
             t_m, info_m, odd_m = leaf_hit(b, tree, flags, left, o, d, from_t, tie)
-        cls_m = K.info_class(info_m)
-        # Once inside, the union's inside reaches at least `reach`: a member entered before it
-        # (or within the tie window after it: a touching face) extends it. Its exit comes
-        # from a second intersection from its entry; then it counts as containing.
-        joined = inside | (containing > 0)
-        reach = dr.select(joined, dr.maximum(ex_t, t_c), -dr.inf)
-        w_m = tie_window(b, tie, dr.minimum(K.info_slope(info_m), K.info_slope(dr.select(
-            containing > 0, ex_info, out_info))))
-        tie_entry = is_leaf & joined & ~again & (cls_m == ENTER) & (t_m <= reach + w_m)
-        contains = is_leaf & ~tie_entry & (cls_m == EXIT)
-        farther = contains & (t_m > ex_t)
-        ex_t, ex_leaf, ex_info = dr.select(farther, t_m, ex_t), dr.select(farther, node, ex_leaf), \
-            dr.select(farther, info_m, ex_info)
-        containing = dr.select(contains, containing + 1, containing)
-        non_convex_inside |= contains & odd_m
-        nearer = is_leaf & ~tie_entry & (cls_m == ENTER) & (t_m < en_t)
-        en_t, en_leaf, en_info = dr.select(nearer, t_m, en_t), dr.select(nearer, node, en_leaf), \
-            dr.select(nearer, info_m, en_info)
-        from_t = dr.select(tie_entry, t_m, t_c)
-        again = tie_entry
-        next_node = dr.select(tie_entry, node, _NO_NODE)
+            cls_m = K.info_class(info_m)
+            # Once inside, the union's inside reaches at least `reach`: a member entered
+            # before it (or within the tie window after it: a touching face) extends it. Its
+            # exit comes from a second intersection from its entry; then it counts as containing.
+            joined = inside | (containing > 0)
+            reach = dr.select(joined, dr.maximum(ex_t, t_c), -dr.inf)
+            w_m = tie_window(b, tie, dr.minimum(K.info_slope(info_m), K.info_slope(dr.select(
+                containing > 0, ex_info, out_info))))
+            again_now = joined & ~again & (cls_m == ENTER) & (t_m <= reach + w_m)
+            contains = ~again_now & (cls_m == EXIT)
+            farther = contains & (t_m > ex_t)
+            ex_t, ex_leaf, ex_info = dr.select(farther, t_m, ex_t), dr.select(farther, node, ex_leaf), \
+                dr.select(farther, info_m, ex_info)
+            containing = dr.select(contains, containing + 1, containing)
+            non_convex_inside |= contains & odd_m
+            nearer = ~again_now & (cls_m == ENTER) & (t_m < en_t)
+            en_t, en_leaf, en_info = dr.select(nearer, t_m, en_t), dr.select(nearer, node, en_leaf), \
+                dr.select(nearer, info_m, en_info)
+            from_t = dr.select(again_now, t_m, t_c)
+        again = again_now
+        next_node = dr.select(again_now, node, _NO_NODE)
 
         # ---- An inner node: open the children whose boxes the ray meets in [t_c, cull] ----
         # Outside: up to the entry bound; inside: up to the reach and its tie window.
@@ -170,42 +168,43 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
 
         # ---- End of a pass ----
         ended = ~done & (node == _NO_NODE) & (sp == 0)
-        found_inside = containing > 0
-        window = tie_window(b, tie, dr.minimum(K.info_slope(ex_info), K.info_slope(en_info)))
-        # Another member may take over at the farthest exit: one entered before it (or may
-        # have been, in a box not opened), or a second containing one that may re-enter.
-        take_over = (en_t <= ex_t + window) | ((containing > 1) & non_convex_inside) | culled
-        # Past the exit bound the state is all that matters: inside up to the bound.
-        unsure = found_inside & take_over & (ex_t >= exit_bound) & (exit_bound < tmax)
-        chain = found_inside & ~unsure & dr.isfinite(ex_t) & take_over
-        exit_now = found_inside & ~unsure & ~chain
-        exit_before = ~found_inside & inside
-        entry = ~found_inside & ~inside & dr.isfinite(en_t) & ((en_t <= entry_bound) | ~culled)
-        outside_to_bound = ~found_inside & ~inside & ~entry & culled & (entry_bound < tmax)
-        t_res = dr.select(unsure, exit_bound, dr.select(outside_to_bound, entry_bound, dr.select(
-            exit_now, ex_t, dr.select(exit_before, out_t, dr.select(entry, en_t, dr.inf)))))
-        leaf_res = dr.select(exit_now, ex_leaf, dr.select(exit_before, out_leaf,
-                                                          dr.select(entry, en_leaf, b.UInt32(root))))
-        info_res = dr.select(exit_now, ex_info, dr.select(exit_before, out_info, dr.select(entry, en_info, MISS)))
-        info_res = dr.select(unsure, b.UInt32(EXIT) | K.PROVISIONAL_BIT,
-                             dr.select(outside_to_bound, b.UInt32(ENTER) | K.PROVISIONAL_BIT, info_res))
-        finish = ended & ~chain
-        res_t, res_leaf, res_info = dr.select(finish, t_res, res_t), dr.select(finish, leaf_res, res_leaf), \
-            dr.select(finish, info_res, res_info)
-        done |= finish
-        # A new pass from the farthest exit.
-        restart = ended & chain
-        inside |= restart
-        out_t, out_leaf, out_info = dr.select(restart, ex_t, out_t), dr.select(restart, ex_leaf, out_leaf), \
-            dr.select(restart, ex_info, out_info)
-        t_c = dr.select(restart, ex_t, t_c)
-        from_t = dr.select(restart, ex_t, from_t)
-        node = dr.select(restart, root, node)
-        en_t, en_leaf, en_info = dr.select(restart, dr.inf, en_t), dr.select(restart, NO_LEAF, en_leaf), \
-            dr.select(restart, MISS, en_info)
-        ex_t, ex_leaf, ex_info = dr.select(restart, -dr.inf, ex_t), dr.select(restart, NO_LEAF, ex_leaf), \
-            dr.select(restart, MISS, ex_info)
-        containing = dr.select(restart, 0, containing)
-        non_convex_inside &= ~restart
-        culled &= ~restart
+        if ended:
+            found_inside = containing > 0
+            window = tie_window(b, tie, dr.minimum(K.info_slope(ex_info), K.info_slope(en_info)))
+            # Another member may take over at the farthest exit: one entered before it (or may
+            # have been, in a box not opened), or a second containing one that may re-enter.
+            take_over = (en_t <= ex_t + window) | ((containing > 1) & non_convex_inside) | culled
+            # Past the exit bound the state is all that matters: inside up to the bound.
+            unsure = found_inside & take_over & (ex_t >= exit_bound) & (exit_bound < tmax)
+            chain = found_inside & ~unsure & dr.isfinite(ex_t) & take_over
+            exit_now = found_inside & ~unsure & ~chain
+            exit_before = ~found_inside & inside
+            entry = ~found_inside & ~inside & dr.isfinite(en_t) & ((en_t <= entry_bound) | ~culled)
+            outside_to_bound = ~found_inside & ~inside & ~entry & culled & (entry_bound < tmax)
+            t_res = dr.select(unsure, exit_bound, dr.select(outside_to_bound, entry_bound, dr.select(
+                exit_now, ex_t, dr.select(exit_before, out_t, dr.select(entry, en_t, dr.inf)))))
+            leaf_res = dr.select(exit_now, ex_leaf, dr.select(exit_before, out_leaf,
+                                                              dr.select(entry, en_leaf, b.UInt32(root))))
+            info_res = dr.select(exit_now, ex_info, dr.select(exit_before, out_info, dr.select(entry, en_info, MISS)))
+            info_res = dr.select(unsure, b.UInt32(EXIT) | K.PROVISIONAL_BIT,
+                                 dr.select(outside_to_bound, b.UInt32(ENTER) | K.PROVISIONAL_BIT, info_res))
+            finish = ended & ~chain
+            res_t, res_leaf, res_info = dr.select(finish, t_res, res_t), dr.select(finish, leaf_res, res_leaf), \
+                dr.select(finish, info_res, res_info)
+            done |= finish
+            # A new pass from the farthest exit.
+            restart = ended & chain
+            inside |= restart
+            out_t, out_leaf, out_info = dr.select(restart, ex_t, out_t), dr.select(restart, ex_leaf, out_leaf), \
+                dr.select(restart, ex_info, out_info)
+            t_c = dr.select(restart, ex_t, t_c)
+            from_t = dr.select(restart, ex_t, from_t)
+            node = dr.select(restart, root, node)
+            en_t, en_leaf, en_info = dr.select(restart, dr.inf, en_t), dr.select(restart, NO_LEAF, en_leaf), \
+                dr.select(restart, MISS, en_info)
+            ex_t, ex_leaf, ex_info = dr.select(restart, -dr.inf, ex_t), dr.select(restart, NO_LEAF, ex_leaf), \
+                dr.select(restart, MISS, ex_info)
+            containing = dr.select(restart, 0, containing)
+            non_convex_inside &= ~restart
+            culled &= ~restart
     return res_t, res_leaf, res_info, iterations
