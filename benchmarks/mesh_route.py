@@ -96,7 +96,7 @@ def path_frames(model, mesh, width, height, repeats, directory) -> dict:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scenes", default="cheese-500,cheese-1000,city-3385,satellites-87.5k")
+    parser.add_argument("--scenes", default="cheese-500,cheese-1000,cheese-8000,city-3385,city-343k")
     parser.add_argument("--segments", type=int, default=48)
     parser.add_argument("--size", default="1280x720")
     parser.add_argument("--repeats", type=int, default=3)
@@ -125,6 +125,9 @@ def main(argv=None):
         row["trace_ratio"] = row["csg_trace_s"] / row["embree_s"]
         row["frozen_ratio"] = row["csg_frozen_s"] / row["embree_s"]
         rows.append(row)
+        # Written after every scene: a later scene's booleans may exhaust the memory (the
+        # Satellites' did here) and take the process with them.
+        common.write(args.name, {'machine': common.machine(), 'args': vars(args), 'rows': rows})
         print(f"  {scene} done", flush=True)
     columns = [("scene", "scene", "s"), ("primitives", "prims", "d"), ("triangles", "mesh tris", "d"),
                ("boolean_s", "booleans s", ".2f"), ("scene_build_s", "build s", ".2f"),

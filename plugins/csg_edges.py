@@ -14,6 +14,10 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
   from the camera: in the leaf's canonical frame, the unit sphere's circle of contact of the
   cone from the camera.
 - CONE_SILHOUETTE: the two contour lines of a cone or cylinder side (one curve per line).
+- TORUS_SILHOUETTE: the contour of a torus seen from the camera, on two branches: at each
+  angle u about the axis, the points of the tube's circle where the normal is
+  perpendicular to the line of sight (in closed form; where the branches meet, the curve
+  turns back and those points are dropped).
 - CIRCLE: a fixed circle of a leaf's canonical frame: the rims of cones and cylinders.
 - SEGMENT: a box edge (corners of the canonical cube).
 - POLY_EDGE: an edge of a convex polyhedron leaf (prisms, GDML polyhedra) or of a mesh
@@ -32,9 +36,9 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
 Each is listed where it may exist (the leaves' boxes overlap); the integrator drops points
 the camera does not see, and whether a point is on the boundary of the CSG solid is left
 to the radiance difference itself, which is zero across a curve inside the solid. Not
-listed yet (`docs/plugins.md` says which derivatives are missing): curves of tori and
-quadrics, where two meshes' triangles meet, and the general curves where a cylinder, cone
-or torus meets anything but a plane face.
+listed yet (`docs/plugins.md` says which derivatives are missing): curves of quadrics,
+where two meshes' triangles meet, and the general curves where a cylinder, cone or torus
+meets anything but a plane face, or a torus meets a plane.
 """
 from __future__ import annotations
 
@@ -45,7 +49,7 @@ import numpy as np
 from mitsuba_csg.engine import layout as K
 
 (SPHERE_SILHOUETTE, CONE_SILHOUETTE, CIRCLE, SEGMENT, SPHERE_PLANE, SPHERE_SPHERE, CONE_PLANE, CAP_PLANE,
- POLY_EDGE, PLANE_PLANE) = range(10)
+ POLY_EDGE, PLANE_PLANE, TORUS_SILHOUETTE) = range(11)
 DATA_FLOATS = 12
 # `extra` of the plane curves: for CONE_PLANE whether the curve is parametrized by height
 # (planes nearer the axis's direction; two branches) rather than by angle, for CAP_PLANE
@@ -117,6 +121,7 @@ class Curves:
         spheres = np.flatnonzero(flat.prim_shape == K.SPHERE)
         boxes = np.flatnonzero(flat.prim_shape == K.BOX)
         cones = np.flatnonzero(flat.prim_shape == K.CONE)
+        tori = np.flatnonzero(flat.prim_shape == K.TORUS)
         convex = np.flatnonzero(flat.prim_shape == K.CONVEX)
         r = flat.prim_param
         parts = []                                  # (kind, a, b, extra, length, data)
@@ -175,6 +180,8 @@ class Curves:
         face_size = np.linalg.norm(face_upper - face_lower, axis=1)
 
         add(SPHERE_SILHOUETTE, spheres, spheres, 0, 2 * np.pi * scale[spheres].max(axis=1))
+        for branch in (0, 1):
+            add(TORUS_SILHOUETTE, tori, tori, branch, 2 * np.pi * (1 + r[tori, 0]) * scale[tori].max(axis=1))
         for k in (0, 1):
             side = np.linalg.norm(np.einsum("pij,pj->pi", to_world[cones, :3, :3],
                                             np.column_stack([r[cones, 1] - r[cones, 0], 0 * cones, 2 + 0 * cones])),
@@ -332,6 +339,27 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     dx_cone = radial * (2 * b_) + mi.Vector3f(0, 0, 2)
     valid_cone = (rho > 0) & (dr.abs(cos_d) < 1)
 
+    # Torus contour (major radius 1, minor k = data[0]): at angle w about the axis the tube
+    # point at v has normal n = (cos v cos w, cos v sin w, sin v) and n . x = cos v + k, so
+    # n . (x - cam) = 0 reads A cos v + B sin v = -k with A = 1 - (cam_x cos w + cam_y sin w),
+    # B = -cam_z: v = atan2(B, A) +- acos(-k / |(A, B)|).
+    k_t = r0
+    cw, sw = dr.cos(phi), dr.sin(phi)
+    a_w = cam.x * cw + cam.y * sw
+    da_w = -cam.x * sw + cam.y * cw
+    A_t, B_t = 1 - a_w, -cam.z
+    R_t = dr.sqrt(A_t * A_t + B_t * B_t)
+    v_t = dr.atan2(B_t, A_t) + dr.select(extra == 0, 1.0, -1.0) * dr.safe_acos(-k_t / R_t)
+    cv, sv = dr.cos(v_t), dr.sin(v_t)
+    ring = 1 + k_t * cv
+    x_tor = mi.Vector3f(ring * cw, ring * sw, k_t * sv)
+    # dv/dw from F(w, v) = A cos v + B sin v + k = 0: F_w = -a' cos v, F_v = -A sin v + B cos v.
+    f_v = -A_t * sv + B_t * cv
+    dv = da_w * cv / f_v
+    dx_tor = mi.Vector3f(-ring * sw - k_t * sv * cw * dv, ring * cw - k_t * sv * sw * dv, k_t * cv * dv)
+    # Where the branches meet (F_v = 0) the contour turns back and its tangent diverges.
+    valid_tor = (R_t > k_t) & (dr.abs(f_v) > 1e-3 * R_t)
+
     # Cone rim: the circle z = -1 (extra 0) or +1 (extra 1).
     rim_z = dr.select(extra == 0, -1.0, 1.0)
     x_rim, dx_rim = _circle(mi.Vector3f(0, 0, rim_z), dr.select(extra == 0, r0, r1), mi.Vector3f(0, 0, 1), phi)
@@ -426,7 +454,7 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     dx_c = dr.select(kind == SPHERE_SILHOUETTE, dx_sil, zero)
     for k, x_k, dx_k in ((CONE_SILHOUETTE, x_cone, dx_cone), (CIRCLE, x_rim, dx_rim), (SEGMENT, x_seg, dx_seg),
                          (SPHERE_PLANE, x_sp, dx_sp), (CONE_PLANE, x_cp, dx_cp), (CAP_PLANE, x_cap, dx_cap),
-                         (POLY_EDGE, x_poly, dx_poly)):
+                         (POLY_EDGE, x_poly, dx_poly), (TORUS_SILHOUETTE, x_tor, dx_tor)):
         x_c = dr.select(kind == k, x_k, x_c)
         dx_c = dr.select(kind == k, dx_k, dx_c)
     x = m_a @ x_c + t_a
@@ -436,10 +464,12 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     x = dr.select(kind == PLANE_PLANE, x_pp, x)
     dx = dr.select(kind == PLANE_PLANE, dx_pp, dx)
     # phi = 2 pi u for the circles
-    circle = (kind == SPHERE_SILHOUETTE) | (kind == CIRCLE) | (kind == SPHERE_PLANE) | (kind == SPHERE_SPHERE)
+    circle = (kind == SPHERE_SILHOUETTE) | (kind == CIRCLE) | (kind == SPHERE_PLANE) | (kind == SPHERE_SPHERE) | \
+        (kind == TORUS_SILHOUETTE)
     dx = dr.select(circle, dr.two_pi * dx, dx)
     valid &= dr.select(kind == SPHERE_SILHOUETTE, valid_sil, True)
     valid &= dr.select(kind == CONE_SILHOUETTE, valid_cone, True)
+    valid &= dr.select(kind == TORUS_SILHOUETTE, valid_tor, True)
     valid &= dr.select(kind == SPHERE_PLANE, valid_sp, True)
     valid &= dr.select(kind == SPHERE_SPHERE, valid_ss, True)
     valid &= dr.select(kind == CONE_PLANE, valid_cp, True)

@@ -13,8 +13,12 @@ from .csg_prb import CSGPRBIntegrator
 # Camera rays either side of a curve pass it at this fraction of its distance (about 1e-3
 # pixel at 64 pixels over 40 degrees).
 OFFSET = 1e-5
-# (offset factor, weight) pairs: the differences at OFFSET and 2 OFFSET extrapolated linearly to 0.
-EXTRAPOLATION = ((1.0, 2.0), (2.0, -1.0))
+# Where the visibility test of a torus contour point starts, as a fraction of its distance.
+TORUS_VIEW_OFFSET = 1e-3
+# (offset factor, weight) pairs: the differences at OFFSET and 4 OFFSET extrapolated to 0 for a
+# difference D(s) = D0 + c sqrt(s) + O(s): beside a contour the surface is seen at grazing
+# incidence, its cosine (hence its shading) grows like the square root of the offset.
+EXTRAPOLATION = ((1.0, 2.0), (4.0, -1.0))
 
 
 class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
@@ -172,15 +176,20 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             # rim, tangent to it where it meets the face), and camera rays either side of the
             # hidden point would measure the jump across the visible one. Tested from just in
             # front of the point, so that its own surfaces do not count.
+            # A torus contour point is tested from further away: along its own tangent line,
+            # 1e-5 of the distance from a grazing point, the quartic's float32 roots are not
+            # exact enough to tell the point's own surface from an occluder (tori cover
+            # themselves only a tube's width away).
             towards_camera = cam - x_d
             distance = dr.norm(towards_camera)
-            view_ray = mi.Ray3f(x_d + OFFSET * towards_camera, towards_camera / distance)
-            view_ray.maxt = (1.0 - 2.0 * OFFSET) * distance
+            start = dr.select(kind == csg_edges.TORUS_SILHOUETTE, TORUS_VIEW_OFFSET, OFFSET)
+            view_ray = mi.Ray3f(x_d + start * towards_camera, towards_camera / distance)
+            view_ray.maxt = (1.0 - 2.0 * start) * distance
             valid &= ~csg.occluded(scene, view_ray, valid)
             # The radiance difference across the curve, from camera rays either side of it at
-            # offsets d and 2 d, extrapolated linearly to the curve: where the surface beside
-            # the curve is seen obliquely (a hole's far rim, a silhouette), the hit point moves
-            # fast with the offset, and one offset alone is biased by a few percent. The
+            # offsets d and 4 d, extrapolated to the curve (EXTRAPOLATION): where the surface
+            # beside the curve is seen obliquely (a hole's far rim, a silhouette), the hit point
+            # moves fast with the offset, and one offset alone is biased by a few percent. The
             # offset, 1e-5 of the distance, stays well above the kernel's tie window.
             offset = OFFSET * dr.norm(x_d - cam)
             delta = mi.Spectrum(0)

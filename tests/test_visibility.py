@@ -26,8 +26,8 @@ CAMERA = [4.0, -6.0, 3.0]
 BSDF = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.6, 0.2]}}
 
 
-def scene_dict(model, integrator, spp, size=(64, 48), target=(0, 0, 0), fov=40):
-    return {
+def scene_dict(model, integrator, spp, size=(64, 48), target=(0, 0, 0), fov=40, backdrop=False):
+    scene = {
         "type": "scene", "integrator": integrator,
         "sensor": {"type": "perspective", "fov": fov,
                    "to_world": mi.ScalarTransform4f().look_at(CAMERA, list(target), [0, 0, 1]),
@@ -37,6 +37,14 @@ def scene_dict(model, integrator, spp, size=(64, 48), target=(0, 0, 0), fov=40):
         "object": {"type": "csg", "model": csg.model_ref(model), "bsdf": BSDF},
         "lamp": {"type": "point", "position": CAMERA, "intensity": 60.0},
     }
+    if backdrop:
+        # A white wall behind the model, lit by the lamp: the model's contours, where the
+        # lamp grazes its surface (dark there), stand out against it. The model's shadow on
+        # the wall lies exactly behind the model, as the lamp sits at the camera.
+        behind = -0.5 * np.asarray(CAMERA)
+        scene["backdrop"] = {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": 0.9},
+                             "to_world": mi.ScalarTransform4f().look_at(behind.tolist(), CAMERA, [0, 0, 1]).scale(8)}
+    return scene
 
 
 def scene(model, integrator, spp, size=(64, 48), **view):
@@ -78,6 +86,7 @@ def check(model, key, weights, spp=256, fd_spp=4096, size=(64, 48), eps=0.02, to
     assert abs(ours.sum() - fd.sum()) < allowed, (ours.sum(), fd.sum(), np.abs(fd).sum())
     assert np.sign(ours.sum()) == np.sign(fd.sum())
     assert np.corrcoef(ours.ravel(), fd.ravel())[0, 1] >= 0.9
+    print("csg_prb_projective / FD", ours.sum() / fd.sum(), "correlation", np.corrcoef(ours.ravel(), fd.ravel())[0, 1])
     return interior.sum() / fd.sum(), np.corrcoef(interior.ravel(), fd.ravel())[0, 1]
 
 
@@ -112,6 +121,19 @@ def test_cylinder_intersected_with_a_rotated_box():
     model = csg.Cylinder(0.9, 2.4) & csg.Box((1.6, 1.6, 1.6)).rotate((1, 1, 0), 20)
     ratio, correlation = check(model, "primitive_rotation", [0, 0, 0, 0, 0, 1])
     assert abs(ratio - 1) > 0.3, ratio
+
+
+@pytest.mark.parametrize("parameter", ["x", "size"])
+def test_torus_silhouette(parameter):
+    """A tilted torus: its contour (outer and inner, on both branches) moving with the
+    torus's position and size."""
+    model = csg.Torus(1.0, 0.35).rotate((1, 0.3, 0), 65)
+    weights = np.zeros(12)
+    weights[[0, 5, 10] if parameter == "size" else [3]] = 1.0
+    ratio, correlation = check(model, "primitive_to_world", weights, spp=512, backdrop=True)
+    print(parameter, "csg_prb / FD", ratio, "correlation", correlation)
+    if parameter == "size":           # a shift's contour terms cancel in the sum; a growth's add up
+        assert abs(ratio - 1) > 0.3, ratio
 
 
 PRISM = csg.Prism(6, 1.0, 2.0).rotate((0, 0, 1), 10) - csg.Sphere(0.6).translate((0.9, -0.5, 0.3))

@@ -2,24 +2,25 @@
 
 The automaton (`engine.automaton`) asks every leaf for its first event after `t_start`. A
 subtree made only of unions of positive leaves (the Cheese's holes, a city block's
-buildings) is a *set* (`layout.SET_BIT` on its root): instead of walking it with the state
+windows) is a *set* (`layout.SET_BIT` on its root): instead of walking it with the state
 tables, which re-descend the looping child for every event, it is searched here as a BVH
-over its own node boxes, and a lone leaf is a set of one. The union of the members:
+over its own node boxes, nearer child first, and a lone leaf is a set of one. The union:
 
 * is inside at t+ exactly where some member is: a member whose first event after t is an
-  exit *contains* the point. Containing members' boxes hold the point, so box culling by
+  exit *contains* the point. Containing members' boxes hold the point, so culling boxes by
   the ray's interval from t never drops them;
 * outside, its next event is the nearest member entry (a closest-hit query: boxes past the
-  nearest entry found so far, or past the caller's bound, are not opened);
-* inside, it leaves at the farthest exit of the containing members, unless another member
-  takes over there: an entry before that exit (or within the tie window after it, a touching
-  face), or a second containing member that is not convex (it may re-enter before the
-  farthest exit). Then a new pass starts at that exit, where members whose entry lies
-  within the tie window count as containing, as touching faces do in the state tables.
+  nearest entry found so far, or past the caller's entry bound, stay closed);
+* inside, it reaches at least the farthest exit of the members found inside (the *reach*).
+  A member entered before the reach, or within the tie window after it (a touching face,
+  as in the state tables), extends it once its exit is known (a second intersection from
+  its entry), and boxes are opened up to the reach as it grows. Another pass, from the
+  reach, follows where a member this pass could not see may take over there: one in a box
+  it left closed, or a second containing member that is not convex (it may re-enter).
 
-Culling by the caller's bound (`t_bound` of the automaton: events past it cannot change the
-parent's answer) may hide an entry; the result is then provisional at the bound, as for a
-subtree whose box lies past it.
+The caller says which event it needs (`entry_bound`, `exit_bound`: events past them cannot
+change the parent's answer); past the bound the result is provisional, the state up to the
+bound, as for a subtree whose box lies past it.
 """
 from __future__ import annotations
 
@@ -88,14 +89,14 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
     stack_near = dr.alloc_local(b.Float, tree.stack_size)
     sp = dr.zeros(b.UInt32, width)
     en_t, en_leaf, en_info = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
-        dr.full(b.UInt32, MISS, width)           # nearest entry of a member not containing t_c
+        dr.full(b.UInt32, MISS, width)           # nearest entry of a member outside at t_c
     ex_t, ex_leaf, ex_info = dr.full(b.Float, -dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
-        dr.full(b.UInt32, MISS, width)           # farthest exit of the members containing t_c
+        dr.full(b.UInt32, MISS, width)           # farthest exit of the members inside (this pass's reach)
     containing = dr.zeros(b.UInt32, width)
     non_convex_inside = dr.zeros(b.Bool, width)
     culled = dr.zeros(b.Bool, width)             # a box was not opened that may hold an entry that matters
-    inside = dr.zeros(b.Bool, width)             # an earlier pass ended inside: the union exit candidate is
-    out_t, out_leaf, out_info = b.Float(ex_t), b.UInt32(ex_leaf), b.UInt32(ex_info)   # out_*
+    inside = dr.zeros(b.Bool, width)             # an earlier pass ended inside, at out_*: the union's exit
+    out_t, out_leaf, out_info = b.Float(ex_t), b.UInt32(ex_leaf), b.UInt32(ex_info)   # unless a member takes over
     res_t, res_leaf, res_info = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
         dr.full(b.UInt32, MISS, width)
     # After an exit, only entries within the widest tie window of it matter (touching faces).
