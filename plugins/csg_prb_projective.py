@@ -49,7 +49,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
          them off. (Default: the render call's spp)
 
     `csg_prb`'s derivatives (interior: shading at a fixed visible primitive) plus those of
-    the boundaries the camera sees move: silhouettes of sphere, cylinder and cone leaves,
+    the boundaries the camera sees move: silhouettes of sphere, cylinder, cone and torus leaves,
     edges of boxes, convex polyhedra (prisms) and mesh leaves, cylinder and cone rims, the
     edges where a sphere meets a face of a box, polyhedron or mesh, or another sphere (the
     CSG edges of holes), where a cylinder's or cone's side or caps meet such a face, and
@@ -63,10 +63,10 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     is blocked) adds nothing, and one that is not on the solid's boundary has no radiance
     difference across it. Forward and backward mode.
 
-    Not yet differentiated: the curves of tori and quadrics, where two meshes' triangles
-    meet, where cylinders, cones or tori meet anything but a plane face, or non-uniformly
-    scaled spheres meet, and indirect visibility (shadows, reflections). Perspective cameras
-    only.
+    Not yet differentiated: the curves of quadrics, where two meshes' triangles meet, where
+    cylinders or cones meet anything but a plane face, where tori meet anything, where
+    non-uniformly scaled spheres meet, and indirect visibility (shadows, reflections).
+    Perspective cameras only.
 
     .. code-block:: python
 
