@@ -212,7 +212,7 @@ def test_an_interrupted_batch_resumes_from_its_saved_chunks(tmp_path):
     def job_file(folder):
         folder.mkdir()
         # Chunks long enough (about 0.1 s each) that the Ctrl-C lands while job a is running.
-        (folder / "jobs.json").write_text(json.dumps({"defaults": {"size": "160x120", "chunk_spp": 1},
+        (folder / "jobs.json").write_text(json.dumps({"defaults": {"size": "320x240", "chunk_spp": 1},
                                                       "jobs": [{"input": "cheese-500", "output": "a.exr", "spp": 48},
                                                                {"input": str(MODEL), "output": "b.exr", "spp": 4}]}))
         return folder / "jobs.json"

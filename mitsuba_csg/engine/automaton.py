@@ -110,8 +110,9 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
     t_bound = b.Float(tmax)                         # events of `node` past this do not matter
     swapped = dr.zeros(b.Bool, n)                   # registers L / R hold `node`'s right / left child
     sp = dr.zeros(b.UInt32, n)                      # shared depth of both stacks
-    steps = dr.zeros(b.UInt32, n)                  # automaton iterations (the runaway bound counts these)
-    walked = dr.zeros(b.UInt32, n)                 # set-walk iterations (engine.leaf_events)
+    steps = dr.zeros(b.UInt32, n)                  # automaton iterations
+    walked = dr.zeros(b.UInt32, n)                 # set-walk iterations (engine.leaf_events); a walk runs to
+                                                   # its end, the iteration bound is tested between steps
     hit_t = dr.alloc_local(b.Float, tree.stack_size)       # hit stack: t (or a saved t_start)
     hit_leaf = dr.alloc_local(b.UInt32, tree.stack_size)   #            leaf node
     hit_info = dr.alloc_local(b.UInt32, tree.stack_size)   #            info word
@@ -126,7 +127,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
     # arrays out of its kernel hash, and without it a kernel compiled for a shallower tree
     # would run with stacks too small for this one (memory corruption, crashes).
     stack_size = tree.stack_size
-    while dr.hint((state != DONE) & (steps < max_iterations) & (sp < stack_size), mode="symbolic",
+    while dr.hint((state != DONE) & (steps + walked < max_iterations) & (sp < stack_size), mode="symbolic",
                   label="csg_traverse"):
         steps += 1
         # Register updates use dr.select rather than nested symbolic ifs: they are cheap, and

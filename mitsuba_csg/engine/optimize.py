@@ -369,8 +369,13 @@ def _merge_subtracted_sets(t: _Tree, root: int, prim_lower, prim_upper) -> int:
             prims = [t.prim[leaf] for leaf in leaves]
             left, right, roots = sah.build(prim_lower[prims], prim_upper[prims], np.ones(len(prims)),
                                            np.array([0]), np.array([len(prims)]))
-            t.left[n], t.right[n] = minuend, _add_built(t, left, right, int(roots[0]), leaves)
-            merged += 1
+            joined = _add_built(t, left, right, int(roots[0]), leaves)
+            # SAH alone may build a deep tree over clustered leaves; the chain is kept where
+            # the merge would deepen the tree past a balanced one's height (and the chain's).
+            allowed = max(t.height[n], int(np.ceil(np.log2(len(prims)))) + 4)
+            if 1 + max(t.height[minuend], t.height[joined]) <= allowed:
+                t.left[n], t.right[n] = minuend, joined
+                merged += 1
             stack.append(minuend)
         else:
             stack.extend((t.left[n], t.right[n]))
