@@ -86,7 +86,6 @@ def check(model, key, weights, spp=256, fd_spp=4096, size=(64, 48), eps=0.02, to
     assert abs(ours.sum() - fd.sum()) < allowed, (ours.sum(), fd.sum(), np.abs(fd).sum())
     assert np.sign(ours.sum()) == np.sign(fd.sum())
     assert np.corrcoef(ours.ravel(), fd.ravel())[0, 1] >= 0.9
-    print("csg_prb_projective / FD", ours.sum() / fd.sum(), "correlation", np.corrcoef(ours.ravel(), fd.ravel())[0, 1])
     return interior.sum() / fd.sum(), np.corrcoef(interior.ravel(), fd.ravel())[0, 1]
 
 
@@ -131,9 +130,12 @@ def test_torus_silhouette(parameter):
     weights = np.zeros(12)
     weights[[0, 5, 10] if parameter == "size" else [3]] = 1.0
     ratio, correlation = check(model, "primitive_to_world", weights, spp=512, backdrop=True)
-    print(parameter, "csg_prb / FD", ratio, "correlation", correlation)
-    if parameter == "size":           # a shift's contour terms cancel in the sum; a growth's add up
+    # csg_prb alone (interior terms only): a growth's contour terms add up, a shift's cancel
+    # in the sum but not pixel by pixel.
+    if parameter == "size":
         assert abs(ratio - 1) > 0.3, ratio
+    else:
+        assert correlation < 0.7, correlation
 
 
 PRISM = csg.Prism(6, 1.0, 2.0).rotate((0, 0, 1), 10) - csg.Sphere(0.6).translate((0.9, -0.5, 0.3))

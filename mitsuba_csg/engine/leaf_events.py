@@ -139,8 +139,8 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
         # ---- An inner node: open the children whose boxes the ray meets in [t_c, cull] ----
         # Outside: up to the entry bound; inside: up to the reach and its tie window.
         joined = inside | (containing > 0)
-        reach = dr.maximum(ex_t, t_c) + widest
-        limit = dr.select(inside, reach, dr.select(joined, dr.maximum(entry_bound, reach), entry_bound))
+        reach_window = dr.maximum(ex_t, t_c) + widest
+        limit = dr.select(inside, reach_window, dr.select(joined, dr.maximum(entry_bound, reach_window), entry_bound))
         cull = dr.minimum(en_t, limit)
         expanding = has_node & ~is_leaf
         if expanding:
@@ -158,7 +158,6 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
             next_node = dr.select(expanding & (hit_l | hit_r), dr.select(right_first, right, left), next_node)
 
         # ---- Nothing to do next: pop the nearest waiting box, unless it lies past cull ----
-        cull = dr.minimum(en_t, limit)
         pop = ~done & (next_node == _NO_NODE) & (sp > 0)
         top = dr.select(pop, sp - 1, 0)
         popped, popped_near = stack_node.read(top, pop), stack_near.read(top, pop)
