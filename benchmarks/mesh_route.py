@@ -127,7 +127,7 @@ def main(argv=None):
         rows.append(row)
         # Written after every scene: a later scene's booleans may exhaust the memory (the
         # Satellites' did here) and take the process with them.
-        common.write(args.name, {'machine': common.machine(), 'args': vars(args), 'rows': rows})
+        path = common.write(args.name, {'machine': common.machine(), 'args': vars(args), 'rows': rows})
         print(f"  {scene} done", flush=True)
     columns = [("scene", "scene", "s"), ("primitives", "prims", "d"), ("triangles", "mesh tris", "d"),
                ("boolean_s", "booleans s", ".2f"), ("scene_build_s", "build s", ".2f"),
@@ -138,7 +138,7 @@ def main(argv=None):
                ("csg_path_s", "csg_path s", ".2f"), ("path_ratio", "csg_path/path", ".1f")]
     print(f"{width}x{height} primary rays, segments={args.segments}")
     print(common.table(rows, columns))
-    print(f"wrote {common.write(args.name, {'machine': common.machine(), 'args': vars(args), 'rows': rows})}")
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":
