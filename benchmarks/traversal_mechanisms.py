@@ -14,7 +14,7 @@ import argparse
 
 import common
 
-MECHANISMS = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets")
+MECHANISMS = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through")
 
 
 def configurations():

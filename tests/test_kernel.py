@@ -35,7 +35,8 @@ TRAVERSALS = {
     "no_bound": TraversalOptions(bounded_search=False),
     "no_near_first": TraversalOptions(near_first=False),
     "no_sets": TraversalOptions(sets=False),
-    "none": TraversalOptions(False, False, False, False, False),
+    "no_pass_through": TraversalOptions(pass_through=False),
+    "none": TraversalOptions(*[False] * 6),
 }
 
 

@@ -116,7 +116,7 @@ def test_validation_names_the_problem():
 def test_random_trees_with_meshes_agree_with_reference(model, seed, traversal):
     targets = [leaf.matrix[:3, 3] for leaf in model.leaves()]
     o, d = make_rays(seed, 96, targets=targets)
-    options = TraversalOptions() if traversal == "default" else TraversalOptions(False, False, False, False)
+    options = TraversalOptions() if traversal == "default" else TraversalOptions(*[False] * 6)
     hits = csg.trace(csg.prepare(model, traversal=options), o, d)
     compare(model, hits, o, d)
 

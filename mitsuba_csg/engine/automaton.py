@@ -34,6 +34,9 @@ LOAD_R     GoTo left after a loop       the right child's hit                the
 
 "Left" and "right" in the table are the registers L and R: with near-first order L holds the
 child searched first, which may be the node's right child (`swapped`, kept in the frame).
+A frame also keeps the node that pushed it, which its child's hit returns to: with
+pass-through an operation's only relevant child takes the operation's place without a
+frame, and then the pushing node is not that child's parent.
 A pop at stack depth 0 ends the lane (DONE) with the root's hit in the left register.
 """
 from __future__ import annotations
@@ -63,6 +66,7 @@ GOTO_L_FRESH, GOTO_R_FRESH, GOTO_L_LOOP, GOTO_R_LOOP, CLASSIFY, RETURN, DONE = r
 # frame also keeps whether the parent's registers hold its children swapped (near_first).
 SAVE_L, LOAD_L, LOAD_R = range(3)
 SWAPPED_FRAME = 4
+FRAME_NODE_SHIFT = 3     # above them, the node the frame returns to (not always the child's parent)
 
 def _box_hit(b, tree, node, o, inv_d, t_start, tmax, active):
     near, far = _box_span(b, tree, node, o, inv_d, active)
@@ -134,8 +138,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         # a literal assigned in two sibling branches misbehaved in Dr.Jit 1.5's LLVM backend
         # (tests/test_drjit_workarounds.py).
 
-        # The current node's record serves GoTo (children), Classify (kind), Return (parent).
-        flags, node_left, node_right, node_parent = node_record(b, tree, node)
+        # The current node's record serves GoTo (children) and Classify (kind).
+        flags, node_left, node_right, _ = node_record(b, tree, node)
         kind = K.flags_kind(flags)
 
         # ---- GoTo: one child of `node`, from t_start ----
@@ -173,6 +177,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
             wants_entry = kind == INTERSECTION
             entry_bound = dr.select(state_only & ~wants_entry, dr.minimum(child_bound, near_tie), child_bound)
             exit_bound = dr.select(state_only & wants_entry, dr.minimum(child_bound, near_tie), child_bound)
+        fresh_left = state == GOTO_L_FRESH
         if dr.hint(tree.options.near_first, mode="scalar"):
             # A fresh search of a union or intersection takes first the child that lies first
             # along the ray on the node's ORDER axis (as a BVH's ordered traversal does), so
@@ -181,33 +186,60 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
             axis = K.flags_order(flags)
             d_axis = dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))
             right_first = (axis != K.NO_ORDER) & ((d_axis < 0) ^ K.flags_left_high(flags))
-            swapped = dr.select(state == GOTO_L_FRESH, right_first, swapped)
-        child = dr.select(go_right ^ swapped, node_right, node_left)
-        near, far = _box_span(b, tree, child, o, inv_d, going)
-        child_flags, _, _, _ = node_record(b, tree, child, going)
+        else:
+            right_first = dr.zeros(b.Bool, n)
+        # Both children's boxes, and what the node's flags say of them (a leaf, a set, co-bounded).
+        bits_l, bits_r = K.flags_children(flags)
+        near_l, far_l = _box_span(b, tree, node_left, o, inv_d, going)
+        near_r, far_r = _box_span(b, tree, node_right, o, inv_d, going)
+        swapped = dr.select(fresh_left, right_first, swapped)
+        single = dr.zeros(b.Bool, n)       # the node is its child in register L
+        vacant = dr.zeros(b.Bool, n)       # the node misses: no child needs searching
+        if dr.hint(tree.options.pass_through, mode="scalar"):
+            # A positive child whose box the ray does not meet after t_start is outside from
+            # there on. A union with such a child, or a difference with such a subtrahend, is
+            # then its other child: that child takes the node's place in the parent's frame
+            # (no frame is pushed), or, a leaf or set, is searched with its sibling's miss
+            # known (Classify in the same step). A union of two such children, an
+            # intersection with one, a difference with such a minuend: a miss.
+            gone_l = ((bits_l & K.CHILD_NEGATIVE) == 0) & ~((near_l <= far_l) & (far_l >= t_start))
+            gone_r = ((bits_r & K.CHILD_NEGATIVE) == 0) & ~((near_r <= far_r) & (far_r >= t_start))
+            is_union = kind == UNION
+            only_l = fresh_left & gone_r & ~gone_l & (is_union | (kind == DIFFERENCE))
+            only_r = fresh_left & gone_l & ~gone_r & is_union
+            vacant = fresh_left & dr.select(is_union, gone_l & gone_r,
+                                            dr.select(kind == INTERSECTION, gone_l | gone_r, gone_l))
+            single = only_l | only_r
+            swapped = dr.select(only_l, False, dr.select(only_r, True, swapped))
+        use_r = go_right ^ swapped
+        child = dr.select(use_r, node_right, node_left)
+        near, far = dr.select(use_r, near_r, near_l), dr.select(use_r, far_r, far_l)
+        child_bits = dr.select(use_r, bits_r, bits_l)
         # A set (a union of leaves) is searched as one node, like a leaf (engine.leaf_events).
-        child_is_leaf = K.flags_kind(child_flags) == LEAF
+        child_is_leaf = (child_bits & K.CHILD_LEAF) != 0
         if dr.hint(tree.options.sets, mode="scalar"):
-            child_is_leaf |= K.flags_set(child_flags)
+            child_is_leaf |= (child_bits & K.CHILD_SET) != 0
+        going &= ~vacant
         reaches = going & (near <= far) & (far >= t_start)      # the box lies (partly) after t_start
         in_box = reaches & (near <= child_bound)
         # Past a bound short of tmax, the subtree's state is known (outside if bounded, inside
         # if co-bounded) but not its next event: a provisional hit at the bound.
         provisional = reaches & ~in_box & (child_bound < tmax)
-        # Descend into an operation child: push what to do with its hit when it comes back.
+        # Descend into an operation child: push what to do with its hit when it comes back,
+        # and where (unless the child takes this node's place).
         descend = in_box & ~child_is_leaf
-        fresh_left = state == GOTO_L_FRESH
-        hit_t.write(dr.select(fresh_left, t_start, dr.select(go_right, t_l, t_r)), sp, descend)
-        hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, descend)
-        hit_info.write(dr.select(go_right, info_l, info_r), sp, descend)
+        push = descend & ~single
+        hit_t.write(dr.select(fresh_left, t_start, dr.select(go_right, t_l, t_r)), sp, push)
+        hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, push)
+        hit_info.write(dr.select(go_right, info_l, info_r), sp, push)
         frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R))
-                    | dr.select(swapped, SWAPPED_FRAME, 0), sp, descend)
-        bound.write(t_bound, sp, descend)
-        sp = dr.select(descend, sp + 1, sp)
+                    | dr.select(swapped, SWAPPED_FRAME, 0) | (node << FRAME_NODE_SHIFT), sp, push)
+        bound.write(t_bound, sp, push)
+        sp = dr.select(push, sp + 1, sp)
         node = dr.select(descend, child, node)
-        t_bound = dr.select(descend, child_bound, t_bound)
+        t_bound = dr.select(push, child_bound, t_bound)
         # A leaf, or a subtree whose box the ray misses from here on: its hit is known now.
-        co_bounded = K.flags_negative(child_flags)
+        co_bounded = (child_bits & K.CHILD_NEGATIVE) != 0
         t_c = dr.select(provisional, child_bound, dr.inf)
         info_c = dr.select(co_bounded, b.UInt32(EXIT), b.UInt32(MISS))   # co-bounded: inside forever
         info_c = dr.select(provisional, dr.select(co_bounded, b.UInt32(EXIT), b.UInt32(ENTER)) | K.PROVISIONAL_BIT,
@@ -222,8 +254,14 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         set_r, set_l = known & go_right, known & ~go_right
         t_r, leaf_r, info_r = dr.select(set_r, t_c, t_r), dr.select(set_r, leaf_c, leaf_r), dr.select(set_r, info_c, info_r)
         t_l, leaf_l, info_l = dr.select(set_l, t_c, t_l), dr.select(set_l, leaf_c, leaf_l), dr.select(set_l, info_c, info_l)
-        state = dr.select(descend, GOTO_L_FRESH,
-                          dr.select(known, dr.select(fresh_left, GOTO_R_FRESH, CLASSIFY), state))
+        # The sibling of a single known child, and both children of a vacant node, miss.
+        miss_r, miss_l = (known & single) | vacant, vacant
+        t_r, leaf_r, info_r = dr.select(miss_r, dr.inf, t_r), dr.select(miss_r, NO_LEAF, leaf_r), \
+            dr.select(miss_r, MISS, info_r)
+        t_l, leaf_l, info_l = dr.select(miss_l, dr.inf, t_l), dr.select(miss_l, NO_LEAF, leaf_l), \
+            dr.select(miss_l, MISS, info_l)
+        state = dr.select(descend, GOTO_L_FRESH, dr.select(
+            known, dr.select(fresh_left & ~single, GOTO_R_FRESH, CLASSIFY), dr.select(vacant, CLASSIFY, state)))
 
         # ---- Classify: apply the state table of `node` ----
         classify = state == CLASSIFY
@@ -295,8 +333,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         at_root = (state == RETURN) & (sp == 0)
         popping = (state == RETURN) & (sp > 0)
         sp = dr.select(popping, sp - 1, sp)
-        node = dr.select(popping, node_parent, node)
         what = frame.read(sp, popping)
+        node = dr.select(popping, what >> FRAME_NODE_SHIFT, node)
         swapped = dr.select(popping, (what & SWAPPED_FRAME) != 0, swapped)
         what = what & (SWAPPED_FRAME - 1)
         t_bound = dr.select(popping, bound.read(sp, popping), t_bound)

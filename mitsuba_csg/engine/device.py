@@ -28,10 +28,10 @@ class TraversalOptions:
     (the KernelTree) and would try to assign to a frozen one.
     """
 
-    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets")
+    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through")
 
     def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True,
-                 near_first: bool = True, sets: bool = True):
+                 near_first: bool = True, sets: bool = True, pass_through: bool = True):
         self.restart_at_sibling = restart_at_sibling   # a loop restarts the looping child at its sibling's event
         self.skip_to_sibling = skip_to_sibling         # a fresh second child starts at the first child's event
                                                        # when that child fixes the node's state
@@ -41,11 +41,13 @@ class TraversalOptions:
                                                        # child whose box the ray enters first
         self.sets = sets                               # unions of leaves are searched as n-ary nodes
                                                        # (engine.leaf_events)
+        self.pass_through = pass_through               # an operation with a child the ray never meets
+                                                       # after t_start is its other child, or a miss
 
     def __repr__(self) -> str:
         return (f"TraversalOptions(restart_at_sibling={self.restart_at_sibling}, "
                 f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search}, "
-                f"near_first={self.near_first}, sets={self.sets})")
+                f"near_first={self.near_first}, sets={self.sets}, pass_through={self.pass_through})")
 
 
 @dataclass
@@ -122,8 +124,12 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     box = np.hstack([lower - pad, zeros, upper + pad, zeros])
     box[empty] = np.nan
     order, left_high = _child_order(kind, left, right, lower, upper)
+    own = (neg * K.CHILD_NEGATIVE | (kind == K.LEAF) * K.CHILD_LEAF | sets * K.CHILD_SET).astype(np.uint32)
+    ops = kind != K.LEAF
+    children = np.zeros(len(kind), np.uint32)
+    children[ops] = own[left[ops]] | own[right[ops]] << K.CHILD_BITS
     flags = K.node_flags(kind.astype(np.uint32), neg.astype(np.uint32), order, left_high, group.astype(np.uint32),
-                         sets.astype(np.uint32))
+                         sets.astype(np.uint32), children)
     node_record = np.stack([flags, left, np.where(right < 0, 0, right), np.where(parent < 0, 0, parent)], 1)
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
     # world -> canonical after scene -> world (x = centre + x' / inv_scale)

@@ -17,6 +17,9 @@ Node flags word (one per flat-tree node)::
               event is the nearer of its children's, whatever their classes
     bit  7    SET: the root of a subtree of unions of positive leaves, searched as one n-ary
               node (`engine.leaf_events`)
+    bits 8-10 of an operation, its left child's CHILD_NEGATIVE, CHILD_LEAF and CHILD_SET bits
+              (the child's own bits 2, kind == LEAF and 7), so that GoTo needs no child record
+    bits 11-13 the same of its right child
 
 Hit info word (one per returned hit)::
 
@@ -67,11 +70,24 @@ NO_ORDER = 3
 LEFT_HIGH_BIT = 0x20
 GROUP_BIT = 0x40
 SET_BIT = 0x80
+# What an operation's GoTo needs to know of each child without reading the child's record:
+# CHILD_BITS bits per child, the left child's at CHILD_SHIFT, the right child's above them.
+CHILD_SHIFT = 8
+CHILD_BITS = 3
+CHILD_NEGATIVE, CHILD_LEAF, CHILD_SET = 0x1, 0x2, 0x4
 
 
-def node_flags(kind, negative, order=NO_ORDER, left_high=0, group=0, set_root=0):
-    """The flags word of nodes (numpy integer and bool arrays)."""
-    return kind | (negative << 2) | (order << ORDER_SHIFT) | (left_high << 5) | (group << 6) | (set_root << 7)
+def node_flags(kind, negative, order=NO_ORDER, left_high=0, group=0, set_root=0, children=0):
+    """The flags word of nodes (numpy integer and bool arrays); `children` is the left
+    child's CHILD_* bits | the right child's << CHILD_BITS."""
+    return (kind | (negative << 2) | (order << ORDER_SHIFT) | (left_high << 5) | (group << 6) | (set_root << 7)
+            | (children << CHILD_SHIFT))
+
+
+def flags_children(flags):
+    """(left, right): the CHILD_* bits of an operation's two children."""
+    mask = (1 << CHILD_BITS) - 1
+    return (flags >> CHILD_SHIFT) & mask, (flags >> (CHILD_SHIFT + CHILD_BITS)) & mask
 
 
 def flags_set(flags):

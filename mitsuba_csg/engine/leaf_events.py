@@ -50,9 +50,7 @@ def box_span(b, tree, node, o, inv_d, active):
     """(near, far) of the ray's parameter inside the node's box (NaN for an empty box)."""
     lo4 = dr.gather(b.Array4f, tree.node_box, node * 2, active)
     hi4 = dr.gather(b.Array4f, tree.node_box, node * 2 + 1, active)
-    lo, hi = b.Array3f(lo4.x, lo4.y, lo4.z), b.Array3f(hi4.x, hi4.y, hi4.z)
-    t1, t2 = (lo - o) * inv_d, (hi - o) * inv_d
-    return dr.max(dr.minimum(t1, t2)), dr.min(dr.maximum(t1, t2))
+    return shapes.box_entry(lo4, hi4, o, inv_d)
 
 
 def leaf_hit(b, tree, flags, prim, o, d, t_start, tie):

@@ -227,11 +227,28 @@ def _pick(v, k):
     return dr.select(k == 0, v.x, dr.select(k == 1, v.y, v.z))
 
 
-def _box_entry(b, lower, upper, o, inv_d):
-    """(near, far) of the ray's parameter inside the box (lower.xyz, upper.xyz)."""
-    t1 = (b.Array3f(lower.x, lower.y, lower.z) - o) * inv_d
-    t2 = (b.Array3f(upper.x, upper.y, upper.z) - o) * inv_d
-    return dr.max(dr.minimum(t1, t2)), dr.min(dr.maximum(t1, t2))
+def box_entry(lower, upper, o, inv_d):
+    """(near, far) of the ray's parameter inside the box (lower.xyz, upper.xyz).
+
+    Comparisons and selects, not dr.minimum / dr.maximum: those propagate NaN, which costs
+    several instructions each on a CPU. A box stored as NaN (empty) has NaN near and far
+    either way, so `near <= far` rejects it.
+    """
+    near, far = [], []
+    for i in range(3):
+        t1, t2 = (lower[i] - o[i]) * inv_d[i], (upper[i] - o[i]) * inv_d[i]
+        closer = t1 < t2
+        near.append(dr.select(closer, t1, t2))
+        far.append(dr.select(closer, t2, t1))
+    return _larger(_larger(near[0], near[1]), near[2]), _smaller(_smaller(far[0], far[1]), far[2])
+
+
+def _larger(a, c):
+    return dr.select(a > c, a, c)
+
+
+def _smaller(a, c):
+    return dr.select(a < c, a, c)
 
 
 @dr.syntax
@@ -310,8 +327,8 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
         if expanding:
             row = node * 4
             lower_l, upper_l = dr.gather(b.Array4f, nodes, row, expanding), dr.gather(b.Array4f, nodes, row + 1, expanding)
-            near_l, far_l = _box_entry(b, lower_l, upper_l, o, inv_d)
-            near_r, far_r = _box_entry(b, dr.gather(b.Array4f, nodes, row + 2, expanding),
+            near_l, far_l = box_entry(lower_l, upper_l, o, inv_d)
+            near_r, far_r = box_entry(dr.gather(b.Array4f, nodes, row + 2, expanding),
                                        dr.gather(b.Array4f, nodes, row + 3, expanding), o, inv_d)
             hit_l = (near_l <= far_l) & (far_l > t_start) & (near_l <= t)
             hit_r = (near_r <= far_r) & (far_r > t_start) & (near_r <= t)
