@@ -22,11 +22,23 @@ def select_variant(name: str | None) -> None:
         mi.set_variant(name)
 
 
+# The order camera rays are traced in (`trace_throughput.rays_for`): 4x4 pixel tiles, as a
+# tiled renderer would trace them (`mitsuba_csg.camera.tile_order`), or image rows.
+RAY_ORDERS = ("tiles", "rows")
+ray_order = "tiles"
+
+
 def parse_args(parser, argv=None):
-    """`parser.parse_args(argv)` with the `--variant` every benchmark takes, selected at once."""
+    """`parser.parse_args(argv)` with the `--variant` and `--ray-order` every benchmark takes,
+    applied at once."""
+    global ray_order
     parser.add_argument("--variant", default=None, help="Mitsuba variant, e.g. cuda_ad_rgb (default: llvm_ad_rgb)")
+    parser.add_argument("--ray-order", choices=RAY_ORDERS, default="tiles",
+                        help="camera rays in 4x4 pixel tiles (default) or in image rows; both the CSG "
+                             "kernel and Embree trace the same rays")
     args = parser.parse_args(argv)
     select_variant(args.variant)
+    ray_order = args.ray_order
     return args
 
 
@@ -43,7 +55,7 @@ def machine() -> dict:
         pass
     return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
             "mitsuba": mi.__version__, "drjit": dr.__version__, "variant": mi.variant(),
-            "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+            "date": time.strftime("%Y-%m-%d %H:%M:%S"), "ray_order": ray_order}
 
 
 def best_of(fn, repeats: int = 5) -> dict:

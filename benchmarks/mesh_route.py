@@ -6,6 +6,9 @@ optimize + upload -> CSG primary rays, at 1280x720.
 
 `segments` is the circle subdivision of round primitives in the mesh (48: a sphere spanning
 ~100 pixels shows no facets at 1280x720 in a diffuse render; raise it for close-ups).
+`--compose` meshes the children of a top-level union one by one and puts them side by side
+instead of evaluating the union (`composed_mesh`): the Satellites' union Boolean ran out of
+memory here, e.g. `--scenes satellites-87.5k --compose --no-path`.
 
 Unless `--no-path`, it also renders one 1-spp frame of the same scene (the command line's
 model scene: floor, sky, sun, max_depth 6, one diffuse BSDF) both ways: `csg_path` with the
@@ -58,10 +61,27 @@ def embree_primary(mesh, o, d, repeats) -> float:
     return common.best_of(run, repeats)["min_s"]
 
 
-def mesh_route(model, o, d, segments, repeats):
+def composed_mesh(model, segments):
+    """The mesh of a top-level union of separate objects without the union's Boolean: each
+    child meshed on its own (its own Booleans), then put side by side (`Manifold.compose`).
+    Where children overlap the result keeps their inner faces, which a ray from outside the
+    solid never meets first, so first hits match the union's. For scenes whose union
+    Boolean does not fit in memory (the Satellites': OOM-killed at 24 GB here)."""
+    import manifold3d as m3
+
+    import mitsuba_csg as csg
+    from mitsuba_csg.model.nodes import UNION, Operation
+    if not (isinstance(model, Operation) and model.kind == UNION):
+        return csg.to_mesh(model, segments=segments)
+    matrix = np.ascontiguousarray(model.matrix[:3, :])
+    parts = [csg.to_mesh(child, segments=segments) for child in model.children]
+    return m3.Manifold.compose(parts).transform(matrix)
+
+
+def mesh_route(model, o, d, segments, repeats, compose=False):
     import mitsuba_csg as csg
     t0 = time.perf_counter()
-    manifold = csg.to_mesh(model, segments=segments)
+    manifold = composed_mesh(model, segments) if compose else csg.to_mesh(model, segments=segments)
     boolean_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     mesh = mitsuba_mesh(manifold)
@@ -101,6 +121,8 @@ def main(argv=None):
     parser.add_argument("--size", default="1280x720")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-path", action="store_true", help="skip the csg_path / path frames")
+    parser.add_argument("--compose", action="store_true",
+                        help="mesh a top-level union's children one by one and compose them (no union Boolean)")
     parser.add_argument("--name", default="mesh_route")
     args = common.parse_args(parser, argv)
     import mitsuba_csg as csg
@@ -114,7 +136,8 @@ def main(argv=None):
         row = dict(scene=scene, primitives=prepared.flat.num_prims, csg_prepare_s=prepare_s,
                    csg_trace_s=timing["min_s"], csg_mrays_s=width * height / timing["min_s"] / 1e6,
                    csg_frozen_s=frozen["min_s"])
-        mesh, mesh_row = mesh_route(model, o, d, args.segments, args.repeats)
+        mesh, mesh_row = mesh_route(model, o, d, args.segments, args.repeats, args.compose)
+        mesh_row["composed"] = args.compose
         row.update(mesh_row)
         if not args.no_path:
             with tempfile.TemporaryDirectory() as directory:

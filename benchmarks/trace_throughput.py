@@ -37,10 +37,15 @@ def scenes_with_rays(names, size):
 
 
 def rays_for(model, width, height):
-    from mitsuba_csg.camera import framing, look_at_rays
+    """The benchmark camera's rays, in `common.ray_order` (4x4 tiles unless --ray-order rows)."""
+    from mitsuba_csg.camera import framing, look_at_rays, tile_order
     lo, hi = model.bounds()
     origin, target = framing(lo, hi, 40.0, width / height)
-    return look_at_rays(origin, target, fov_degrees=40.0, width=width, height=height)
+    o, d = look_at_rays(origin, target, fov_degrees=40.0, width=width, height=height)
+    if common.ray_order == "tiles":
+        perm = tile_order(width, height)
+        o, d = o[perm], d[perm]
+    return o, d
 
 
 def measure(prepared, o, d, repeats, frozen=False):

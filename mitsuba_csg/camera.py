@@ -1,4 +1,5 @@
-"""Primary rays of a pinhole camera, as numpy arrays (for `trace`, demos and benchmarks)."""
+"""Primary rays of a pinhole camera, as numpy arrays (for `trace`, demos and benchmarks), and
+the pixel order that traces them fastest."""
 from __future__ import annotations
 
 import numpy as np
@@ -21,6 +22,22 @@ def look_at_rays(origin, target, up=(0.0, 0.0, 1.0), fov_degrees: float = 40.0,
     d = forward + uu.reshape(-1, 1) * right + vv.reshape(-1, 1) * true_up
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return np.broadcast_to(origin, d.shape).copy(), d
+
+
+def tile_order(width: int, height: int, tile: int = 4) -> np.ndarray:
+    """A permutation of the row-major pixels of a width x height image into tile x tile blocks.
+
+    The kernel runs rays in SIMD packets of consecutive lanes (16 on AVX-512, a warp on a
+    GPU), each packet as long as its slowest ray. Rays of a 4x4 block see more alike
+    geometry than 16 pixels of a row, so a packet wastes fewer lanes: trace `rays[perm]`,
+    then put results back with `image.reshape(-1)[perm] = results`.
+    """
+    if tile < 1:
+        raise ValueError(f"tile: expected a positive size, got {tile}")
+    y, x = np.divmod(np.arange(width * height), width)
+    blocks_x = -(-width // tile)
+    key = ((y // tile) * blocks_x + x // tile) * tile * tile + (y % tile) * tile + x % tile
+    return np.argsort(key, kind="stable")
 
 
 def framing(lower, upper, fov_degrees: float = 40.0, aspect: float = 16 / 9, direction=(1.0, -1.6, 0.9)):

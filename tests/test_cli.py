@@ -214,3 +214,18 @@ def test_materials_get_distinct_colours():
     colours = [tuple(table[k]["reflectance"]["value"]) for k in ("G4_Pb", "G4_lAr")]
     assert colours[0] != colours[1] and max(abs(a - b) for a, b in zip(*colours)) > 0.2
     assert table["color_1_0_0_1"]["reflectance"]["value"] == [1.0, 0.0, 0.0]
+
+
+@pytest.mark.parametrize("width, height", [(8, 4), (10, 7), (1, 1)])
+def test_tile_order_is_a_permutation_into_blocks(width, height):
+    """Every pixel once; consecutive runs of 16 are one 4x4 block where the image holds it."""
+    from mitsuba_csg.camera import tile_order
+    perm = tile_order(width, height)
+    assert sorted(perm.tolist()) == list(range(width * height))
+    y, x = np.divmod(perm, width)
+    block = (y // 4) * ((width + 3) // 4) + x // 4
+    assert np.all(np.diff(block) >= 0)        # blocks one after another, each contiguous
+    full = np.flatnonzero(np.bincount(block) == 16)
+    for b in full:
+        members = perm[block == b]
+        assert len(set(y[block == b])) == 4 and len(set(x[block == b])) == 4, members
