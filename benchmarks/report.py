@@ -124,9 +124,18 @@ def main():
         out.append("")
     mesh = load("mesh_route")
     if mesh:
+        # A separate run's rows (a scene whose union Boolean needs --compose, or other segments).
+        extra = load("mesh_route_satellites")
+        for r in (extra or {}).get("rows", []):
+            mesh["rows"].append(dict(r, scene=f"{r['scene']} ({extra['args']['segments']} segments"
+                                     f"{', composed' if extra['args'].get('compose') else ''})"))
+        order = mesh["machine"].get("ray_order", "rows")
         out += ["## Versus the mesh route", "",
-                f"`./run.sh bench mesh_route.py` (segments={mesh['args']['segments']}): manifold3d booleans, "
-                "Mitsuba scene build (Embree BVH), Embree primary rays at 1280x720, against optimize + CSG primary rays.",
+                f"`./run.sh bench mesh_route.py` (segments={mesh['args']['segments']}, camera rays in "
+                f"{'4x4 pixel tiles' if order == 'tiles' else 'image rows'}): manifold3d booleans, "
+                "Mitsuba scene build (Embree BVH), Embree primary rays at 1280x720, against optimize + CSG primary rays. "
+                "A row with its own segments comes from a separate run (`--compose`: a top-level union's children "
+                "meshed one by one and composed, where the union Boolean ran out of memory).",
                 "The last columns render one 1-spp frame of the command line's model scene (floor, sky, sun, "
                 "max_depth 6) both ways: `csg_path` on the CSG shape, Mitsuba's `path` with the mesh in its place.",
                 "'frozen' replays the recorded kernels (`trace_rays(frozen=True)`, as a render loop of fixed "

@@ -66,7 +66,8 @@ GOTO_L_FRESH, GOTO_R_FRESH, GOTO_L_LOOP, GOTO_R_LOOP, CLASSIFY, RETURN, DONE = r
 # frame also keeps whether the parent's registers hold its children swapped (near_first).
 SAVE_L, LOAD_L, LOAD_R = range(3)
 SWAPPED_FRAME = 4
-FRAME_NODE_SHIFT = 3     # above them, the node the frame returns to (not always the child's parent)
+FRAME_NODE_SHIFT = 3     # above them, the node the frame returns to (not always the child's parent;
+                         # device.MAX_NODES keeps node ids within the word)
 
 def _box_hit(b, tree, node, o, inv_d, t_start, tmax, active):
     near, far = _box_span(b, tree, node, o, inv_d, active)

@@ -15,9 +15,10 @@ import numpy as np
 from . import layout as K
 from .backend import Backend, owned
 from .lowering import FlatTree
-from ..errors import TreeTooDeepError
+from ..errors import ModelError, TreeTooDeepError
 
 MAX_STACK = 1024        # deepest tree the per-lane stacks are allocated for
+MAX_NODES = 1 << 29     # a stack frame holds a node id above 3 bits of its own (engine.automaton)
 
 
 class TraversalOptions:
@@ -105,6 +106,8 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         root = n
     else:
         root = flat.root
+    if len(kind) >= MAX_NODES:
+        raise ModelError(f"the CSG tree has {len(kind)} nodes; the kernel addresses fewer than {MAX_NODES}")
     height = int(flat.node_height.max(initial=0)) + (1 if wrap else 0)
     if height > MAX_STACK:
         raise TreeTooDeepError(f"the CSG tree is {height} operations deep; the kernel allows {MAX_STACK}. "
