@@ -49,7 +49,9 @@ def main():
                 "`./run.sh bench trace_throughput.py --scenes <scenes> --no-compile --repeats 2 --name table2` "
                 "(and `--name table2_large --no-path` for the two largest scenes); `--scenes paper` runs all "
                 "nine in one go (about half an hour here).", "",
-                "1280x720 primary rays (one per pixel, no shading). '-': the input tree with chains of one "
+                f"1280x720 primary rays (one per pixel, no shading; traced in "
+                f"{'4x4 pixel tiles' if m.get('ray_order') == 'tiles' else 'image rows'}). "
+                "'-': the input tree with chains of one "
                 "operation balanced in input order; '+': optimized (paper §4). 'path' is a full `csg_path` "
                 "frame at 1 spp (camera, sun shadow ray, one bounce) on the optimized tree.", "",
                 "| scene | prims | depth - / + | fps - | fps + | Mrays/s + | steps/ray + | +/- | path 1spp s | "
