@@ -444,3 +444,14 @@ def test_models_too_big_for_the_memory_are_refused_up_front(tmp_path, monkeypatc
         csg.load(str(path))
     monkeypatch.undo()
     assert memory.available_bytes() is None or memory.available_bytes() > 2**20
+
+
+def test_a_tree_past_the_node_limit_is_refused_by_name(monkeypatch):
+    """The kernel's stack frames hold node ids in 29 bits; a tree with more nodes (here: the
+    limit lowered to 4) is refused with both counts, not traced with ids cut short."""
+    import mitsuba_csg as csg
+    from mitsuba_csg.engine import device
+    monkeypatch.setattr(device, "MAX_NODES", 4)
+    model = csg.Sphere(1.0) | csg.Box(1.0).translate((3, 0, 0)) | csg.Sphere(0.5).translate((0, 3, 0))
+    with pytest.raises(csg.ModelError, match=r"has \d+ nodes; the kernel addresses fewer than 4"):
+        csg.prepare(model)
