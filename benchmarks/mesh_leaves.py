@@ -56,6 +56,7 @@ def main(argv=None):
     args = common.parse_args(parser, argv)
     import mitsuba_csg as csg
     from mitsuba_csg import scenes
+    from mitsuba_csg.formats.mesh_export import mesh_arrays
     width, height = (int(v) for v in args.size.split("x"))
     rows = []
 
@@ -65,7 +66,7 @@ def main(argv=None):
     prepared = csg.prepare(lone)
     timing, info = measure(prepared, o, d, args.repeats)
     frozen, _ = measure(prepared, o, d, args.repeats, frozen=True)
-    embree = embree_primary(mitsuba_mesh(manifold), o, d, args.repeats)
+    embree = embree_primary(mitsuba_mesh(*mesh_arrays(manifold)), o, d, args.repeats)
     rows.append(dict(scene=f"lone mesh ({len(lone.faces)} tris)", csg_s=timing["min_s"], embree_s=embree,
                      ratio=timing["min_s"] / embree, csg_frozen_s=frozen["min_s"],
                      frozen_ratio=frozen["min_s"] / embree, **info))

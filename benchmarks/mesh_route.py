@@ -31,25 +31,27 @@ import common
 from trace_throughput import measure, scenes_with_rays
 
 
-def mitsuba_mesh(manifold):
-    """A Mitsuba mesh of a manifold3d.Manifold."""
+def mitsuba_mesh(verts, tris):
+    """A Mitsuba mesh of vertex (N, 3) and triangle (M, 3) arrays."""
     import mitsuba as mi
-
-    from mitsuba_csg.formats.mesh_export import mesh_arrays
-    verts, tris = mesh_arrays(manifold)
     mesh = mi.Mesh("csg-mesh", len(verts), len(tris))
     params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(verts.astype(np.float32).ravel())
-    params["faces"] = mi.UInt32(tris.astype(np.uint32).ravel())
+    params["vertex_positions"] = mi.Float(np.asarray(verts, np.float32).ravel())
+    params["faces"] = mi.UInt32(np.asarray(tris, np.uint32).ravel())
     params.update()
     return mesh
 
 
-def embree_primary(mesh, o, d, repeats) -> float:
-    """Best seconds of Embree primary rays (t, normal, primitive) on a Mitsuba mesh."""
+def embree_primary(mesh, o, d, repeats, timings=None) -> float:
+    """Best seconds of Embree primary rays (t, normal, primitive) on a Mitsuba mesh; the
+    seconds of the scene build (Embree's BVH) go into `timings["bvh_s"]`."""
     import drjit as dr
     import mitsuba as mi
+    t0 = time.perf_counter()
     scene = mi.load_dict({"type": "scene", "mesh": mesh})
+    dr.sync_thread()
+    if timings is not None:
+        timings["bvh_s"] = time.perf_counter() - t0
     ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, i].astype(np.float32)) for i in range(3))),
                    mi.Vector3f(*(mi.Float(d[:, i].astype(np.float32)) for i in range(3))))
     dr.eval(ray)
@@ -62,32 +64,40 @@ def embree_primary(mesh, o, d, repeats) -> float:
 
 
 def composed_mesh(model, segments):
-    """The mesh of a top-level union of separate objects without the union's Boolean: each
-    child meshed on its own (its own Booleans), then put side by side (`Manifold.compose`).
+    """(vertices, triangles) of a top-level union of separate objects without the union's
+    Boolean: each child meshed on its own (its own Booleans), its arrays put side by side.
     Where children overlap the result keeps their inner faces, which a ray from outside the
-    solid never meets first, so first hits match the union's. For scenes whose union
-    Boolean does not fit in memory (the Satellites': OOM-killed at 24 GB here)."""
-    import manifold3d as m3
-
+    solid never meets first, so first hits match the union's. For scenes whose union Boolean
+    does not fit in memory (the Satellites': OOM-killed at 24 GB here, and so was composing
+    their 6250 manifolds with `Manifold.compose`)."""
     import mitsuba_csg as csg
+    from mitsuba_csg.formats.mesh_export import mesh_arrays
     from mitsuba_csg.model.nodes import UNION, Operation
     if not (isinstance(model, Operation) and model.kind == UNION):
-        return csg.to_mesh(model, segments=segments)
-    matrix = np.ascontiguousarray(model.matrix[:3, :])
-    parts = [csg.to_mesh(child, segments=segments) for child in model.children]
-    return m3.Manifold.compose(parts).transform(matrix)
+        return mesh_arrays(csg.to_mesh(model, segments=segments))
+    verts, tris, offset = [], [], 0
+    for child in model.children:
+        v, f = mesh_arrays(csg.to_mesh(child, segments=segments))
+        verts.append((v @ model.matrix[:3, :3].T + model.matrix[:3, 3]).astype(np.float32))
+        tris.append((f + offset).astype(np.uint32))
+        offset += len(v)
+    return np.concatenate(verts), np.concatenate(tris)
 
 
 def mesh_route(model, o, d, segments, repeats, compose=False):
     import mitsuba_csg as csg
+    from mitsuba_csg.formats.mesh_export import mesh_arrays
     t0 = time.perf_counter()
-    manifold = composed_mesh(model, segments) if compose else csg.to_mesh(model, segments=segments)
+    verts, tris = composed_mesh(model, segments) if compose else mesh_arrays(csg.to_mesh(model, segments=segments))
     boolean_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    mesh = mitsuba_mesh(manifold)
+    mesh = mitsuba_mesh(verts, tris)
     build_s = time.perf_counter() - t0
-    embree_s = embree_primary(mesh, o, d, repeats)
-    return mesh, dict(triangles=manifold.num_tri(), boolean_s=boolean_s, scene_build_s=build_s, embree_s=embree_s)
+    timings = {}
+    embree_s = embree_primary(mesh, o, d, repeats, timings)
+    # The scene build: the Mitsuba mesh and Embree's BVH over it.
+    return mesh, dict(triangles=len(tris), boolean_s=boolean_s, scene_build_s=build_s + timings["bvh_s"],
+                      embree_s=embree_s)
 
 
 def path_frames(model, mesh, width, height, repeats, directory) -> dict:
