@@ -191,6 +191,24 @@ def main():
                        f"{fmt(r.get('frozen_ratio'), '.1f')} | {fmt(r.get('vs_analytic'), '.2f')} | "
                        f"{r['mean_steps']:.1f} |")
         out.append("")
+    incoherent = load("incoherent_rays")
+    if incoherent:
+        m = incoherent["machine"]
+        out += ["## Incoherent ray batches", "",
+                f"`./run.sh bench incoherent_rays.py` ({m['date']}, `{m['variant']}`): "
+                f"{incoherent['rows'][0]['rays']} rays per batch, traced as given and with "
+                "`trace_rays(reorder=True)` (only the rays that meet the model's box, sorted by origin and "
+                "direction cell; the sort included), and by Embree on the manifold3d mesh. `bounce`: points "
+                "on the ground under the model with cosine-distributed upward directions; `points`: points "
+                "uniform in the model's box, each with the fixed direction of `csg.contains`. SIMD use is the "
+                "mean steps over the mean of each 16-lane packet's largest, for the batch as given.", "",
+                "| scene | batch | rays in box | steps/ray | SIMD use | as given s | reordered s | speed-up | "
+                "Embree s | reordered / Embree |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in incoherent["rows"]:
+            out.append(f"| {r['scene']} | {r['batch']} | {r['box_fraction']:.2f} | {r['mean_steps']:.1f} | "
+                       f"{r['utilization']:.2f} | {r['plain_s']:.3f} | {r['reorder_s']:.3f} | {r['speedup']:.2f} | "
+                       f"{fmt(r.get('embree_s'), '.3f')} | {fmt(r.get('reorder_over_embree'), '.1f')} |")
+        out.append("")
     several = load("several_shapes")
     if several:
         m = several["machine"]

@@ -15,11 +15,13 @@ import numpy as np
 from .engine import layout as K
 from .engine.automaton import traverse
 from .engine.backend import Backend, default_backend, owned
-from .engine.device import KernelTree, TraversalOptions, node_record, upload
+from .engine.device import KernelTree, TraversalOptions, node_record, scene_rays, upload
 from .engine.hit_geometry import hit_normal
 from .engine.lowering import FlatTree, lower
 from .engine.optimize import OptimizedModel
 from .engine.optimize import optimize as optimize_tree
+from .engine.ray_order import coherent_order, root_box_mask, sort_keys
+from .engine.shapes import inverse_direction
 from .errors import CSGError
 from .model.nodes import Node
 
@@ -92,10 +94,17 @@ def _broadcast_opaque(b, value: float, n: int):
 
 
 def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen: bool = False,
-               active=None) -> RayHits:
+               active=None, reorder: bool = False) -> RayHits:
     """First hit of each ray o + t d, t in (tmin, tmax], on the CSG solid (Dr.Jit arrays).
 
     `active` (a Bool per ray, optional) skips the lanes where it is false: they miss at no cost.
+
+    `reorder=True` traces only the rays that meet the model's box, sorted by origin and
+    direction (`engine.ray_order`), and puts the results back in the input's order; results
+    are the same bit for bit. It pays on incoherent batches (bounce-like rays, scattered
+    points' rays: 1.1-1.9x, benchmarks/incoherent_rays.py) and costs ~10 % on camera rays,
+    which are coherent already. It evaluates the inputs, so inside a symbolic loop (where
+    nothing can be evaluated, as in the csg_* integrators) it is ignored.
 
     `frozen=True` records the call's kernels with `dr.freeze` the first time a batch of this
     width (and these tmin, tmax numbers) is traced, and replays them afterwards without
@@ -107,6 +116,8 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen:
         if active is not None:
             raise CSGError("trace_rays(frozen=True): an active mask is not supported; trace all lanes")
         return _replay(prepared, o, d, tmin, tmax)
+    if reorder and not dr.flag(dr.JitFlag.SymbolicScope):
+        return _trace_reordered(prepared, o, d, tmin, tmax, active)
     tree = prepared.tree
     b = tree.b
     o, d = b.Array3f(dr.detach(o)), b.Array3f(dr.detach(d))
@@ -123,6 +134,34 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen:
     t = dr.select(finished, t, dr.nan)
     return RayHits(t=t, normal=normal, prim=dr.select(hit, prim, K.NO_LEAF),
                    entering=hit & (K.info_class(info) == K.ENTER), finished=finished, steps=steps, info=info)
+
+
+def _trace_reordered(prepared: Prepared, o, d, tmin, tmax, active) -> RayHits:
+    b = prepared.tree.b
+    o, d = b.Array3f(dr.detach(o)), b.Array3f(dr.detach(d))
+    n = max(dr.width(o), dr.width(d), dr.width(tmin), dr.width(tmax), dr.width(active))
+    o, d = o + dr.zeros(b.Array3f, n), d + dr.zeros(b.Array3f, n)
+    tmin = b.Float(dr.detach(tmin)) + dr.zeros(b.Float, n)
+    tmax = b.Float(dr.detach(tmax)) + dr.zeros(b.Float, n)
+    scene_o, scene_d, k = scene_rays(prepared.tree, o, d)
+    mask = root_box_mask(b, prepared.tree, scene_o, inverse_direction(b, scene_d), tmin * k, tmax * k,
+                         True if active is None else b.Bool(dr.detach(active)))
+    order, rank = coherent_order(b, sort_keys(b, scene_o, scene_d), mask)
+    misses = RayHits(t=dr.full(b.Float, dr.inf, n), normal=dr.zeros(b.Array3f, n),
+                     prim=dr.full(b.UInt32, K.NO_LEAF, n), entering=dr.zeros(b.Bool, n),
+                     finished=dr.full(b.Bool, True, n), steps=dr.zeros(b.UInt32, n),
+                     info=dr.full(b.UInt32, K.MISS, n))
+    if dr.width(order) == 0:
+        return misses
+    traced = trace_rays(prepared, dr.gather(b.Array3f, o, order), dr.gather(b.Array3f, d, order),
+                        dr.gather(b.Float, tmin, order), dr.gather(b.Float, tmax, order))
+    fields = ("t", "normal", "prim", "entering", "finished", "steps", "info")
+    dr.eval(*(getattr(traced, name) for name in fields))   # one traversal kernel for all outputs
+    # Gathered back rather than scattered: see coherent_order.
+    back = {name: dr.select(mask, dr.gather(type(getattr(traced, name)), getattr(traced, name), rank, mask),
+                            getattr(misses, name))
+            for name in fields}
+    return RayHits(**back)
 
 
 def _replay(prepared: Prepared, o, d, tmin, tmax) -> RayHits:
@@ -176,12 +215,13 @@ def rays_to_device(array, backend: Backend | None = None):
 
 
 def trace(model, origins, directions, tmin: float = 0.0, tmax: float = np.inf, *,
-          optimize: bool = True, max_iterations: int | None = None) -> Hits:
+          optimize: bool = True, max_iterations: int | None = None, reorder: bool = False) -> Hits:
     """First hit of each ray on the CSG solid; numpy (N, 3) arrays in, `Hits` out.
 
     `model` is a Node, an optimized model or the result of `prepare`. Rays are o + t d with
     t in (tmin, tmax]; d need not be unit length and t is in units of d. The tree is
-    optimized first unless `optimize=False` (see `prepare`).
+    optimized first unless `optimize=False` (see `prepare`). `reorder=True` suits rays in no
+    particular order, such as scattered points' rays (see `trace_rays`); results are the same.
     """
     o, d = _rays(origins, "origins"), _rays(directions, "directions")
     if len(o) != len(d):
@@ -199,7 +239,8 @@ def trace(model, origins, directions, tmin: float = 0.0, tmax: float = np.inf, *
     if len(o) == 0:
         return Hits(np.zeros(0, np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int64),
                     np.zeros(0, bool), 0, np.zeros(0, np.uint32))
-    hits = trace_rays(prepared, rays_to_device(o, b), rays_to_device(d, b), float(tmin), float(tmax))
+    hits = trace_rays(prepared, rays_to_device(o, b), rays_to_device(d, b), float(tmin), float(tmax),
+                      reorder=reorder)
     dr.eval(hits.t, hits.normal, hits.prim, hits.entering, hits.finished, hits.steps)
     prim = hits.prim.numpy().astype(np.int64)
     prim[prim == K.NO_LEAF] = -1
@@ -234,5 +275,6 @@ def contains(model, points, *, optimize: bool = True) -> np.ndarray:
     inside. Points on the boundary itself may go either way.
     """
     p = _rays(points, "points")
-    hits = trace(model, p, np.broadcast_to(_PROBE, p.shape), 0.0, np.inf, optimize=optimize)
+    # Points come in any order: their rays are traced grouped by where they start.
+    hits = trace(model, p, np.broadcast_to(_PROBE, p.shape), 0.0, np.inf, optimize=optimize, reorder=True)
     return (hits.prim >= 0) & ~hits.entering

@@ -51,6 +51,7 @@ from .leaf_events import box_span as _box_span
 from .leaf_events import complement_class as _complement_class
 from .leaf_events import next_event
 from .leaf_events import tie_window as _tie_window
+from .shapes import inverse_direction
 
 # Events of different primitives closer than a tie window are one event for the state
 # tables (docs/accuracy.md). The window is TIE_TOLERANCE x (the scene's extent + the ray
@@ -99,7 +100,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
     n = max(dr.width(o.x), dr.width(d.x), dr.width(tmin), dr.width(tmax), dr.width(active))
     o, d, k = scene_rays(tree, o, d)
     tmin, tmax = tmin * k, tmax * k
-    inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
+    inv_d = inverse_direction(b, d)
     tie = _tie_tolerance(b, tree, o, d)
 
     # ---- Loop state (all full width: a width-1 literal stack index misbehaved in Dr.Jit 1.5,

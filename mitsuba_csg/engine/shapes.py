@@ -227,6 +227,12 @@ def _pick(v, k):
     return dr.select(k == 0, v.x, dr.select(k == 1, v.y, v.z))
 
 
+def inverse_direction(b, d):
+    """1 / d per component for slab tests; a zero component becomes a huge number of its sign,
+    so that the slab of a ray parallel to it is all or nothing."""
+    return b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
+
+
 def box_entry(lower, upper, o, inv_d):
     """(near, far) of the ray's parameter inside the box (lower.xyz, upper.xyz).
 
@@ -268,7 +274,7 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
     sx, sy, sz = _pick(d, kx) / dz, _pick(d, ky) / dz, 1.0 / dz
     ox, oy, oz = _pick(o, kx), _pick(o, ky), _pick(o, kz)
     slope_scale = dr.norm(d) * dr.abs(sz)
-    inv_d = b.Array3f([dr.select(d[i] == 0, dr.copysign(1e30, d[i]), 1.0 / d[i]) for i in range(3)])
+    inv_d = inverse_direction(b, d)
 
     # The walk: `node` is an inner node whose children's boxes are still to be tested, [tri,
     # tri_end) the triangles of the leaf being tested; refs of boxes the ray reaches, with
