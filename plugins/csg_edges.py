@@ -32,13 +32,20 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
   in the cone's canonical frame (z as a function of the angle, or the angle as a function
   of z on two branches when the plane is nearer the axis's direction).
 - CAP_PLANE: the chord where the plane of such a face crosses a cone or cylinder cap.
+- SURFACE_PAIR: any other curve where a face of a sphere, cone or torus leaf meets a face of
+  another sphere, cone or torus leaf, or a torus meets a box's or convex polyhedron's face
+  (a sphere cutting a cylinder, two cylinders, a torus sunk into a box). No closed form:
+  the host traces the curve on a grid over leaf a's surface (marching squares on leaf b's
+  implicit function) into chords, one curve per chord; on the device a point of a chord is
+  moved onto both leaves' attached surfaces by Newton steps, x - J^T (J J^T)^-1 F with J
+  the surfaces' gradients, whose derivative is the curve's motion normal to itself (the
+  implicit-function theorem), which is all the boundary term needs.
 
 Each is listed where it may exist (the leaves' boxes overlap); the integrator drops points
 the camera does not see, and whether a point is on the boundary of the CSG solid is left
 to the radiance difference itself, which is zero across a curve inside the solid. Not
 listed yet (`docs/plugins.md` says which derivatives are missing): curves of quadrics,
-where two meshes' triangles meet, and the general curves where a cylinder, cone or torus
-meets anything but a plane face, or a torus meets a plane.
+where two meshes' triangles meet, and where a torus meets a mesh's triangles.
 """
 from __future__ import annotations
 
@@ -47,10 +54,12 @@ import mitsuba as mi
 import numpy as np
 
 from mitsuba_csg.engine import layout as K
+from mitsuba_csg.engine.backend import ad_module
+from mitsuba_csg.engine.shapes import surface_function
 
 (SPHERE_SILHOUETTE, CONE_SILHOUETTE, CIRCLE, SEGMENT, SPHERE_PLANE, SPHERE_SPHERE, CONE_PLANE, CAP_PLANE,
- POLY_EDGE, PLANE_PLANE, TORUS_SILHOUETTE) = range(11)
-DATA_FLOATS = 12
+ POLY_EDGE, PLANE_PLANE, TORUS_SILHOUETTE, SURFACE_PAIR) = range(12)
+DATA_FLOATS = 16
 # `extra` of the plane curves: for CONE_PLANE whether the curve is parametrized by height
 # (planes nearer the axis's direction; two branches) rather than by angle, for CAP_PLANE
 # which cap. The plane itself is the curve's `data`: (normal, offset) in leaf b's frame.
@@ -278,12 +287,154 @@ class Curves:
             crossing &= inside & (near < far) & np.isfinite(near) & np.isfinite(far)
             data = np.column_stack([face_plane[i], face_plane[j], near, far])[crossing]
             add(PLANE_PLANE, p[crossing], q[crossing], 0, (far - near)[crossing], data)
+        for rows in _surface_pair_curves(flat, overlapping):
+            add(SURFACE_PAIR, *rows)
         kind, a, b, extra, length, data = (np.concatenate(column) for column in zip(*parts))
         self.count = len(kind)
         self.kind, self.a, self.b = kind.astype(np.uint32), a.astype(np.uint32), b.astype(np.uint32)
         self.extra = extra.astype(np.uint32)
         self.data = data.astype(np.float32)
         self.weight = length / distance[a] if self.count else np.zeros(0)
+
+
+# ---- SURFACE_PAIR: curves traced on the host ----
+
+# Grid over leaf a's face on which leaf b's implicit function is sampled (angles get more
+# points); a chord's sagitta on a circle of n segments is ~5 / n^2 of its radius.
+_GRID_ANGLE, _GRID_OTHER = 96, 40
+_CONE_FACES = (0, 1, 2)            # side, bottom cap (z = -1), top cap (z = +1)
+
+
+def _face_grid(shape, face, param):
+    """(n1, n2, 3) canonical points covering a face of a sphere, cone or torus leaf; rows
+    and columns wrap where the face does (endpoints repeated)."""
+    angle = np.linspace(0.0, 2 * np.pi, _GRID_ANGLE + 1)
+    if shape == K.SPHERE:
+        theta = np.linspace(0.0, np.pi, _GRID_OTHER + 1)[:, None]
+        return np.stack(np.broadcast_arrays(np.sin(theta) * np.cos(angle), np.sin(theta) * np.sin(angle),
+                                            np.cos(theta)), axis=-1)
+    if shape == K.TORUS:
+        tube = np.linspace(0.0, 2 * np.pi, _GRID_OTHER + 1)[:, None]
+        ring = 1.0 + param[0] * np.cos(tube)
+        return np.stack(np.broadcast_arrays(ring * np.cos(angle), ring * np.sin(angle), param[0] * np.sin(tube)),
+                        axis=-1)
+    a, c = 0.5 * (param[0] + param[1]), 0.5 * (param[1] - param[0])
+    if face == 0:
+        z = np.linspace(-1.0, 1.0, _GRID_OTHER + 1)[:, None]
+        radius = a + c * z
+    else:
+        z = -1.0 if face == 1 else 1.0
+        radius = np.linspace(0.0, param[face - 1], _GRID_OTHER + 1)[:, None]
+    return np.stack(np.broadcast_arrays(radius * np.cos(angle), radius * np.sin(angle), z + 0 * angle), axis=-1)
+
+
+def _implicit(flat, prim, face, y):
+    """(f, on_face) of a leaf's face at canonical points y (..., 3): f = 0 on its surface,
+    and whether the point lies within the face (a cone's side between its caps, a cap's disc,
+    a box face's square, a convex face's polygon)."""
+    shape, param = flat.prim_shape[prim], flat.prim_param[prim]
+    x, yy, z = y[..., 0], y[..., 1], y[..., 2]
+    slack = 1e-6
+    if shape == K.SPHERE:
+        return x * x + yy * yy + z * z - 1.0, np.ones(x.shape, bool)
+    if shape == K.TORUS:
+        s = x * x + yy * yy + z * z + 1.0 - param[0] ** 2
+        return s * s - 4.0 * (x * x + yy * yy), np.ones(x.shape, bool)
+    if shape == K.CONE:
+        a, c = 0.5 * (param[0] + param[1]), 0.5 * (param[1] - param[0])
+        if face == 0:
+            return x * x + yy * yy - (a + c * z) ** 2, np.abs(z) <= 1 + slack
+        cap = -1.0 if face == 1 else 1.0
+        return cap * z - 1.0, x * x + yy * yy <= param[face - 1] ** 2 * (1 + slack)
+    if shape == K.BOX:
+        axis, sign = face // 2, 1.0 if face & 1 else -1.0
+        others = [k for k in range(3) if k != axis]
+        return sign * y[..., axis] - 1.0, np.all(np.abs(y[..., others]) <= 1 + slack, axis=-1)
+    start, count = flat.prim_plane_start[prim], flat.prim_plane_count[prim]   # convex
+    planes = flat.planes[start:start + count]
+    values = y @ planes[:, :3].T - planes[:, 3]
+    others = np.delete(values, face, axis=-1)
+    return values[..., face], np.all(others <= slack * (1 + np.abs(np.delete(planes[:, 3], face))), axis=-1)
+
+
+def _chords(points, f):
+    """Chords (M, 2, 3) of the zero set of f (n1, n2) sampled at points (n1, n2, 3): the
+    crossings on the grid's edges, joined in each cell (marching squares; a cell crossed on
+    all four edges gets two chords, paired in edge order)."""
+    s = f >= 0
+
+    def crossing(f1, f2, p1, p2):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = f1 / (f1 - f2)
+        return p1 + np.nan_to_num(w)[..., None] * (p2 - p1)
+    along = crossing(f[:, :-1], f[:, 1:], points[:, :-1], points[:, 1:])      # (n1, n2-1)
+    across = crossing(f[:-1], f[1:], points[:-1], points[1:])                 # (n1-1, n2)
+    cut_along, cut_across = s[:, :-1] != s[:, 1:], s[:-1] != s[1:]
+    # a cell's edges in order: bottom, right, top, left
+    cut = np.stack([cut_along[:-1], cut_across[:, 1:], cut_along[1:], cut_across[:, :-1]], axis=-1)
+    at = np.stack([along[:-1], across[:, 1:], along[1:], across[:, :-1]], axis=-2)
+    cut, at = cut.reshape(-1, 4), at.reshape(-1, 4, 3)
+    count = cut.sum(axis=1)
+    two = count == 2
+    first = np.argsort(~cut[two], axis=1, kind="stable")[:, :2]
+    pairs = [np.take_along_axis(at[two], first[:, :, None], axis=1)]
+    four = count == 4
+    pairs += [at[four][:, 0:2], at[four][:, 2:4]]
+    return np.concatenate(pairs)
+
+
+def _surface_pair_curves(flat, overlapping):
+    """Rows for `Curves.add` (a, b, extra, length, data) of the SURFACE_PAIR chords: faces of
+    sphere, cone and torus leaves against faces of other such leaves, and tori against box
+    and convex faces; pairs the closed forms cover are left to them."""
+    shape = flat.prim_shape
+    curved = np.flatnonzero(np.isin(shape, (K.SPHERE, K.CONE, K.TORUS)))
+    faced = np.flatnonzero(np.isin(shape, (K.SPHERE, K.CONE, K.TORUS, K.BOX, K.CONVEX)))
+    i, j = overlapping(curved, faced)
+    scale = np.linalg.norm(flat.prim_to_world[:, :3, :3], axis=1)
+    uniform = np.ptp(scale, axis=1) <= 1e-6 * scale.max(axis=1)
+    rows = []
+    for p, q in zip(curved[i], faced[j]):
+        if p == q:
+            continue
+        sp, sq = shape[p], shape[q]
+        flat_q = sq in (K.BOX, K.CONVEX)
+        if flat_q and sp != K.TORUS:
+            continue                      # SPHERE_PLANE, CONE_PLANE, CAP_PLANE
+        if sp == K.SPHERE and sq == K.SPHERE and uniform[p] and uniform[q]:
+            continue                      # SPHERE_SPHERE
+        if not flat_q and p > q:
+            continue                      # two curved leaves: once, every face against every face
+        faces_p = _CONE_FACES if sp == K.CONE else (0,)
+        faces_q = (_CONE_FACES if sq == K.CONE else range(6) if sq == K.BOX
+                   else range(flat.prim_plane_count[q]) if sq == K.CONVEX else (0,))
+        for fp in faces_p:
+            if sp == K.CONE and fp > 0 and flat.prim_param[p, fp - 1] <= 0:
+                continue                  # a cone's tip has no cap
+            grid = _face_grid(sp, fp, flat.prim_param[p])
+            world = grid @ flat.prim_to_world[p, :3, :3].T + flat.prim_to_world[p, :3, 3]
+            y_q = world @ flat.prim_to_canonical[q, :, :3].T + flat.prim_to_canonical[q, :, 3]
+            for fq in faces_q:
+                f, _ = _implicit(flat, q, fq, y_q)
+                chords = _chords(world, f)
+                if not len(chords):
+                    continue
+                ends_q = chords @ flat.prim_to_canonical[q, :, :3].T + flat.prim_to_canonical[q, :, 3]
+                on = np.all(_implicit(flat, q, fq, ends_q)[1], axis=1)
+                length = np.linalg.norm(chords[on, 1] - chords[on, 0], axis=1)
+                chords, length = chords[on][length > 0], length[length > 0]
+                if not len(chords):
+                    continue
+                plane = np.zeros(4)
+                if sq == K.CONVEX:
+                    plane = flat.planes[flat.prim_plane_start[q] + fq]
+                data = np.zeros((len(chords), 12))
+                data[:, 0:6] = chords.reshape(-1, 6)
+                data[:, 6:8] = flat.prim_param[q]
+                data[:, 8:12] = plane
+                extra = fp | (fq << 8) | (int(sp) << 16) | (int(sq) << 24)
+                rows.append((np.full(len(chords), p), q, extra, length, data))
+    return rows
 
 
 def _box_corners(m):
@@ -365,8 +516,10 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     x_rim, dx_rim = _circle(mi.Vector3f(0, 0, rim_z), dr.select(extra == 0, r0, r1), mi.Vector3f(0, 0, 1), phi)
 
     # Box edge: between two canonical corners.
-    corner_i = dr.gather(mi.UInt32, mi.UInt32([i for i, _ in _BOX_EDGES]), extra)
-    corner_j = dr.gather(mi.UInt32, mi.UInt32([j for _, j in _BOX_EDGES]), extra)
+    # (masked: other kinds' `extra` is no edge index, and an unmasked gather past the table's
+    # end reads whatever memory lies there)
+    corner_i = dr.gather(mi.UInt32, mi.UInt32([i for i, _ in _BOX_EDGES]), extra, kind == SEGMENT)
+    corner_j = dr.gather(mi.UInt32, mi.UInt32([j for _, j in _BOX_EDGES]), extra, kind == SEGMENT)
 
     def corner(c):
         return mi.Vector3f(dr.select((c & 1) != 0, 1.0, -1.0), dr.select((c & 2) != 0, 1.0, -1.0),
@@ -450,6 +603,9 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     unit = dr.normalize(line)
     x_pp, dx_pp = foot + unit * dr.lerp(data[10], data[11], u), unit * (data[11] - data[10])
 
+    # A chord listed on the host (SURFACE_PAIR), moved onto both leaves' attached surfaces.
+    x_pair, dx_pair, valid_pair = _newton_on_pair(kind == SURFACE_PAIR, extra, m_a, t_a, m_b, t_b, data, u)
+
     x_c = dr.select(kind == SPHERE_SILHOUETTE, x_sil, zero)
     dx_c = dr.select(kind == SPHERE_SILHOUETTE, dx_sil, zero)
     for k, x_k, dx_k in ((CONE_SILHOUETTE, x_cone, dx_cone), (CIRCLE, x_rim, dx_rim), (SEGMENT, x_seg, dx_seg),
@@ -463,6 +619,8 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     dx = dr.select(kind == SPHERE_SPHERE, dx_ss_w, dx)
     x = dr.select(kind == PLANE_PLANE, x_pp, x)
     dx = dr.select(kind == PLANE_PLANE, dx_pp, dx)
+    x = dr.select(kind == SURFACE_PAIR, x_pair, x)
+    dx = dr.select(kind == SURFACE_PAIR, dx_pair, dx)
     # phi = 2 pi u for the circles
     circle = (kind == SPHERE_SILHOUETTE) | (kind == CIRCLE) | (kind == SPHERE_PLANE) | (kind == SPHERE_SPHERE) | \
         (kind == TORUS_SILHOUETTE)
@@ -474,4 +632,47 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     valid &= dr.select(kind == SPHERE_SPHERE, valid_ss, True)
     valid &= dr.select(kind == CONE_PLANE, valid_cp, True)
     valid &= dr.select(kind == CAP_PLANE, valid_cap, True)
+    valid &= dr.select(kind == SURFACE_PAIR, valid_pair, True)
     return x, dx, valid
+
+
+# Newton steps from a chord's point onto the curve: the chords' sagitta at the host's grid
+# is ~1e-3 of the leaf's size, and each step squares the relative error.
+NEWTON_STEPS = 2
+
+
+def _world_surface(m, matrix, offset, shape, face, param, plane, x):
+    """(f, grad f) of a leaf's face at world point x: f = g(M^-1 (x - t)), grad f = M^-T grad g."""
+    inverse = dr.rcp(matrix)
+    g, grad = surface_function(m, shape, face, param, plane, m.Array3f(inverse @ (x - offset)))
+    return g, inverse.T @ mi.Vector3f(grad)
+
+
+def _newton_on_pair(active, extra, m_a, t_a, m_b, t_b, data, u):
+    """(world point, dx/du, valid) of SURFACE_PAIR curves: the point at u on the chord
+    (data 2-7, world space, detached) moved by Newton steps x -= J^T (J J^T)^-1 F onto
+    f_a = 0 and f_b = 0, F attached to the leaves' matrices, J = (grad f_a, grad f_b)
+    detached. At F = 0 the step's derivative is -J^T (J J^T)^-1 dF/dparameter: the motion
+    of the curve normal to itself."""
+    m = ad_module(u)
+    face_a, face_b = extra & 0xFF, (extra >> 8) & 0xFF
+    shape_a, shape_b = (extra >> 16) & 0xFF, extra >> 24
+    start, end = mi.Vector3f(data[2], data[3], data[4]), mi.Vector3f(data[5], data[6], data[7])
+    x = dr.lerp(start, end, u)
+    no_plane = m.Array4f(0.0)
+    plane_b = m.Array4f(data[10], data[11], data[12], data[13])
+    valid = mi.Bool(active)
+    for _ in range(NEWTON_STEPS):
+        f_a, g_a = _world_surface(m, m_a, t_a, shape_a, face_a, (data[0], data[1]), no_plane, x)
+        f_b, g_b = _world_surface(m, m_b, t_b, shape_b, face_b, (data[8], data[9]), plane_b, x)
+        g_a, g_b = dr.detach(g_a), dr.detach(g_b)
+        aa, ab, bb = dr.dot(g_a, g_a), dr.dot(g_a, g_b), dr.dot(g_b, g_b)
+        det = aa * bb - ab * ab
+        # surfaces that touch (parallel gradients) have no transversal curve there
+        valid &= det > 1e-6 * aa * bb
+        det = dr.select(valid, det, 1.0)
+        lam_a, lam_b = (bb * f_a - ab * f_b) / det, (aa * f_b - ab * f_a) / det
+        x = x - dr.select(valid, lam_a * g_a + lam_b * g_b, 0.0)
+    # a point the steps carried off its chord's neighbourhood did not converge
+    valid &= dr.norm(dr.detach(x) - dr.lerp(start, end, u)) <= dr.norm(end - start) + 1e-3 * dr.norm(start)
+    return x, end - start, valid

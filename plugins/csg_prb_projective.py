@@ -52,8 +52,11 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     the boundaries the camera sees move: silhouettes of sphere, cylinder, cone and torus leaves,
     edges of boxes, convex polyhedra (prisms) and mesh leaves, cylinder and cone rims, the
     edges where a sphere meets a face of a box, polyhedron or mesh, or another sphere (the
-    CSG edges of holes), where a cylinder's or cone's side or caps meet such a face, and
-    where the faces of two boxes or polyhedra (or one of them and a mesh's triangle) meet.
+    CSG edges of holes), where a cylinder's or cone's side or caps meet such a face, where
+    the faces of two boxes or polyhedra (or one of them and a mesh's triangle) meet, and
+    the curves with no closed form: where sphere, cylinder, cone and torus leaves meet each
+    other, or a torus meets a box's or polyhedron's face (traced into chords on a grid,
+    each point moved onto both surfaces by Newton steps).
     Points on those curves are sampled in proportion to their length in the image, each
     moving with the shapes' `primitive_to_world` (and so with the named parameters); the
     estimate is the radiance difference across the curve (camera rays either side of it, at
@@ -64,8 +67,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     difference across it. Forward and backward mode.
 
     Not yet differentiated: the curves of quadrics, where two meshes' triangles meet, where
-    cylinders or cones meet anything but a plane face, where tori meet anything, where
-    non-uniformly scaled spheres meet, and indirect visibility (shadows, reflections).
+    a torus meets a mesh's triangles, and indirect visibility (shadows, reflections).
     Perspective cameras only.
 
     .. code-block:: python
