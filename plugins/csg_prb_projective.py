@@ -1,4 +1,5 @@
-"""The `csg_prb_projective` integrator: csg_prb plus the primarily visible boundary derivative."""
+"""The `csg_prb_projective` integrator: csg_prb plus the boundary derivatives of what the camera
+sees directly and of the shadows point lights cast."""
 from __future__ import annotations
 
 import drjit as dr
@@ -13,8 +14,19 @@ from .csg_prb import CSGPRBIntegrator
 # Camera rays either side of a curve pass it at this fraction of its distance (about 1e-3
 # pixel at 64 pixels over 40 degrees).
 OFFSET = 1e-5
-# Where the visibility test of a torus contour point starts, as a fraction of its distance.
-TORUS_VIEW_OFFSET = 1e-3
+# How far from a contour point (sphere, cone, torus) a ray along its viewpoint's line may meet
+# the point's own leaf again and be stepped past, as a fraction of the scale
+# (`_first_hit_past_own`).
+CONTOUR_VIEW_OFFSET = 1e-3
+# Camera rays either side of a shadow's edge pass it at this fraction of its distance: the
+# receiver's shadow rays then pass the caster's contour at about that fraction of their
+# length, and at 1e-5 a float32 sphere test near tangency told the two sides apart only
+# part of the time (the radiance difference came out of the wrong sign for 59 % of the
+# points along part of a sphere's shadow).
+SHADOW_OFFSET = 1e-3
+# A camera ray to a shadow's edge passing its casting point closer than this fraction of the
+# point's distance sees the edge right behind the caster's own contour.
+SHADOW_GAP = 1e-3
 # (offset factor, weight) pairs: the differences at OFFSET and 4 OFFSET extrapolated to 0 for a
 # difference D(s) = D0 + c sqrt(s) + O(s): beside a contour the surface is seen at grazing
 # incidence, its cosine (hence its shading) grows like the square root of the offset.
@@ -66,9 +78,15 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     is blocked) adds nothing, and one that is not on the solid's boundary has no radiance
     difference across it. Forward and backward mode.
 
+    Shadows of point and spot lights: the same curves, seen from the light, cast the edges
+    of shadows where the light's rays through them meet a surface (the floor, another csg
+    shape, the solid itself); the camera sees those edges move as it sees any curve (each
+    edge point the central projection of its curve point onto the receiver's tangent plane,
+    which moves too where the receiver is a csg shape).
+
     Not yet differentiated: the curves of quadrics, where two meshes' triangles meet, where
-    a torus meets a mesh's triangles, and indirect visibility (shadows, reflections).
-    Perspective cameras only.
+    a torus meets a mesh's triangles, shadows of area, directional and environment lights,
+    and shadows and curves seen in reflections. Perspective cameras only.
 
     .. code-block:: python
 
@@ -116,36 +134,60 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         return tuple(fallback if own is None else own for own in (self.sppc, self.sppp))
 
     def render_boundary(self, scene, sensor, seed, spp):
-        """The primarily visible boundary term as an image attached to the shapes' parameters
-        (its value is 0; its derivative is the term): forward_to or backward from it."""
+        """The boundary terms as an image attached to the shapes' parameters (its value is 0;
+        its derivative is the terms): forward_to or backward from it. The primarily visible
+        curves, and the shadows they cast from point-like lights onto what the camera sees."""
         if not sensor.__repr__().startswith("PerspectiveCamera"):
             raise ValueError("csg_prb_projective: boundary derivatives need a perspective camera")
         csg = SceneCSG(scene)
+        if not csg.csg:
+            return None
         film = sensor.film()
         to_world = np.array(dr.detach(sensor.world_transform().matrix), np.float64)
         if to_world.ndim == 3 and to_world.shape[-1] != 1:
             raise ValueError("csg_prb_projective: an animated camera is not supported")
         camera = to_world.reshape(4, 4, -1)[:3, 3, 0]
-        curves = [csg_edges.Curves(shape, camera) for shape in csg.csg]
+        sampler, spp = self.prepare(sensor, 0xFFFFFFFF ^ seed, spp, [])
+        film.prepare([])
+        block = film.create_block(normalize=True)
+        block.set_coalesce(block.coalesce() and spp >= 4)
+        with dr.suspend_grad():
+            wavelengths, wavelength_weight = sensor.sample_wavelengths(
+                dr.zeros(mi.SurfaceInteraction3f), sampler.next_1d() if mi.is_spectral else 0.0)
+        terms = [self._primary_term(scene, sensor, csg, camera, sampler, spp, wavelengths, wavelength_weight)]
+        for light in _point_lights(scene):
+            if np.linalg.norm(light - camera) <= 1e-6 * max(1.0, np.linalg.norm(camera)):
+                continue          # a light at the camera hides every shadow behind its caster
+            terms.append(self._shadow_term(scene, sensor, csg, camera, light, sampler, spp, wavelengths,
+                                           wavelength_weight))
+        terms = [term for term in terms if term is not None]
+        if not terms:
+            return None
+        for uv, value, valid in terms:
+            block.put(pos=uv, wavelengths=wavelengths, value=value, weight=0, alpha=1, active=valid)
+        film.put_block(block)
+        return film.develop()
+
+    def _sample_curves(self, scene, csg, viewpoint, sampler):
+        """Points on the curves of the scene's csg shapes as seen from `viewpoint` (the camera,
+        or a light), sampled in proportion to their length over their distance: (x attached to
+        the shapes' parameters, dx/du, valid, kind, pmf), or None where there are no curves."""
+        curves = [csg_edges.Curves(shape, viewpoint) for shape in csg.csg]
         if not sum(c.count for c in curves):
             return None
         shape_of = np.concatenate([np.full(c.count, s, np.uint32) for s, c in enumerate(curves)])
         weights = np.concatenate([c.weight for c in curves])
         data = np.concatenate([c.data for c in curves])
         distribution = mi.DiscreteDistribution(mi.Float(weights.astype(np.float32)))
-
-        sampler, spp = self.prepare(sensor, 0xFFFFFFFF ^ seed, spp, [])
         with dr.suspend_grad():
             index, u, pmf = distribution.sample_reuse_pmf(sampler.next_1d())
-            wavelengths, wavelength_weight = sensor.sample_wavelengths(
-                dr.zeros(mi.SurfaceInteraction3f), sampler.next_1d() if mi.is_spectral else 0.0)
         kind = dr.gather(mi.UInt32, mi.UInt32(np.concatenate([c.kind for c in curves])), index)
         a = dr.gather(mi.UInt32, mi.UInt32(np.concatenate([c.a for c in curves])), index)
         b = dr.gather(mi.UInt32, mi.UInt32(np.concatenate([c.b for c in curves])), index)
         extra = dr.gather(mi.UInt32, mi.UInt32(np.concatenate([c.extra for c in curves])), index)
         solid = dr.gather(mi.UInt32, mi.UInt32(shape_of), index)
         data = [dr.gather(mi.Float, mi.Float(np.ascontiguousarray(data[:, k])), index) for k in range(data.shape[1])]
-        cam = mi.Point3f(*[float(c) for c in camera])
+        view = mi.Point3f(*[float(c) for c in viewpoint])
 
         # The leaves' matrices, attached to each shape's primitive_to_world.
         m_a, t_a, m_b, t_b = mi.Matrix3f(0), mi.Vector3f(0), mi.Matrix3f(0), mi.Vector3f(0)
@@ -155,62 +197,115 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             mb, tb = csg_edges.leaf_rows(shape.primitive_to_world, b, mine)
             m_a, t_a = dr.select(mine, ma, m_a), dr.select(mine, ta, t_a)
             m_b, t_b = dr.select(mine, mb, m_b), dr.select(mine, tb, t_b)
-        x, dx, valid = csg_edges.evaluate(kind, extra, m_a, t_a, m_b, t_b, data, cam, u)
+        x, dx, valid = csg_edges.evaluate(kind, extra, m_a, t_a, m_b, t_b, data, view, u)
         with dr.suspend_grad():
-            x_d, dx_d = dr.detach(x), dr.detach(dx)
-            speed = dr.norm(dx_d)
-            tangent = dx_d / speed
-            view = dr.normalize(x_d - cam)
+            # Only a point seen from the viewpoint: a hidden curve can pass near a visible
+            # discontinuity (a hole's sphere's contour just beneath the face runs along the
+            # rim, tangent to it where it meets the face), and rays either side of the hidden
+            # point would measure the jump across the visible one. Tested from just in front
+            # of the point, so that its own surfaces do not count.
+            x_d = dr.detach(x)
+            towards = view - x_d
+            distance = dr.norm(towards)
+            found, _ = _first_hit_past_own(scene, csg, x_d, towards / distance, (1.0 - OFFSET) * distance, distance,
+                                           _contour(kind), a, solid, valid)
+            valid &= ~found
+        return x, dx, valid, kind, pmf, a, solid
+
+    def _difference(self, scene, sampler, camera, sensor, y, dy, pmf, valid, wavelengths, wavelength_weight, spp,
+                    offset=OFFSET):
+        """(film position, value, valid) of the boundary term of an image curve through y
+        (attached) with tangent dy/du sampled at `pmf`: the radiance difference across it,
+        from camera rays either side at offsets d and 4 d extrapolated to the curve
+        (EXTRAPOLATION: where the surface beside the curve is seen obliquely, a hole's far
+        rim, a silhouette, the hit point moves fast with the offset, and one offset alone is
+        biased by a few percent; the offset, 1e-5 of the distance, stays well above the
+        kernel's tie window; `offset` sets it), times the film Jacobian, over the pdf; its derivative is the
+        term (the curve's motion normal to itself, Mitsuba's own sensor Jacobian)."""
+        cam = mi.Point3f(*[float(c) for c in camera])
+        with dr.suspend_grad():
+            y_d, dy_d = dr.detach(y), dr.detach(dy)
+            speed = dr.norm(dy_d)
+            tangent = dy_d / speed
+            view = dr.normalize(y_d - cam)
             normal = dr.normalize(dr.cross(tangent, view))
             pdf = pmf / speed                                  # per unit length of the curve
             it = dr.zeros(mi.Interaction3f)
-            it.p = x_d
+            it.p = y_d
             ds, _ = sensor.sample_direction(it, mi.Point2f(0), valid)
             valid &= (ds.pdf != 0) & (speed > 0) & dr.isfinite(pdf) & (pdf > 0)
             # Film area per (curve length x normal displacement): Mitsuba's own Jacobian of the
             # camera's projection, for a point moving along `silhouette_d` and `n` (the method
             # reads nothing of its ProjectiveDetail instance).
-            sample = dr.zeros(mi.SilhouetteSample3f, dr.width(x_d))
-            sample.p, sample.silhouette_d, sample.n = x_d, tangent, normal
+            sample = dr.zeros(mi.SilhouetteSample3f, dr.width(y_d))
+            sample.p, sample.silhouette_d, sample.n = y_d, tangent, normal
             jacobian = mi.ad.ProjectiveDetail.sensor_jacobian(None, sensor, sample)
-            # Only a visible curve point: a hidden curve can pass near a visible discontinuity
-            # in the image (a hole's sphere's contour just beneath the face runs along the
-            # rim, tangent to it where it meets the face), and camera rays either side of the
-            # hidden point would measure the jump across the visible one. Tested from just in
-            # front of the point, so that its own surfaces do not count.
-            # A torus contour point is tested from further away: along its own tangent line,
-            # 1e-5 of the distance from a grazing point, the quartic's float32 roots are not
-            # exact enough to tell the point's own surface from an occluder (tori cover
-            # themselves only a tube's width away).
-            towards_camera = cam - x_d
-            distance = dr.norm(towards_camera)
-            start = dr.select(kind == csg_edges.TORUS_SILHOUETTE, TORUS_VIEW_OFFSET, OFFSET)
-            view_ray = mi.Ray3f(x_d + start * towards_camera, towards_camera / distance)
-            view_ray.maxt = (1.0 - 2.0 * start) * distance
-            valid &= ~csg.occluded(scene, view_ray, valid)
-            # The radiance difference across the curve, from camera rays either side of it at
-            # offsets d and 4 d, extrapolated to the curve (EXTRAPOLATION): where the surface
-            # beside the curve is seen obliquely (a hole's far rim, a silhouette), the hit point
-            # moves fast with the offset, and one offset alone is biased by a few percent. The
-            # offset, 1e-5 of the distance, stays well above the kernel's tie window.
-            offset = OFFSET * dr.norm(x_d - cam)
+            offset = offset * dr.norm(y_d - cam)
             delta = mi.Spectrum(0)
             for factor, scale in EXTRAPOLATION:
-                inside = self._radiance(scene, sampler, cam, x_d - factor * offset * normal, wavelengths, valid)
-                outside = self._radiance(scene, sampler, cam, x_d + factor * offset * normal, wavelengths, valid)
+                inside = self._radiance(scene, sampler, cam, y_d - factor * offset * normal, wavelengths, valid)
+                outside = self._radiance(scene, sampler, cam, y_d + factor * offset * normal, wavelengths, valid)
                 delta += scale * (inside - outside)
             delta *= wavelength_weight
             valid &= dr.any(delta != 0)
             weight = delta * jacobian / pdf / spp
-
         # Moving the curve by v . n in the image replaces the outside radiance by the inside.
-        motion = dr.dot(x - x_d, normal)
-        film.prepare([])
-        block = film.create_block(normalize=True)
-        block.set_coalesce(block.coalesce() and spp >= 4)
-        block.put(pos=ds.uv, wavelengths=wavelengths, value=weight * motion, weight=0, alpha=1, active=valid)
-        film.put_block(block)
-        return film.develop()
+        return ds.uv, weight * dr.dot(y - y_d, normal), valid
+
+    def _primary_term(self, scene, sensor, csg, camera, sampler, spp, wavelengths, wavelength_weight):
+        """The curves the camera sees directly."""
+        sampled = self._sample_curves(scene, csg, camera, sampler)
+        if sampled is None:
+            return None
+        x, dx, valid, _, pmf, _, _ = sampled
+        return self._difference(scene, sampler, camera, sensor, x, dx, pmf, valid, wavelengths, wavelength_weight,
+                                spp)
+
+    def _shadow_term(self, scene, sensor, csg, camera, light, sampler, spp, wavelengths, wavelength_weight):
+        """The shadows the curves cast from a point-like light at `light`: a curve point x the
+        light sees casts the edge of a shadow where the light's ray through x, continued,
+        meets a surface (y0, normal n). Within that surface's tangent plane the edge is the
+        curve's central projection from the light, y = l + (x - l) ((y0 - l) . n) / ((x - l)
+        . n), which moves with x, and with y0 and n where the receiver is a csg shape (a hole's
+        rim casting its shadow into the hole moves with it); the camera sees its image as it
+        sees any curve. Mitsuba's own shapes receive as if they stood still."""
+        sampled = self._sample_curves(scene, csg, light, sampler)
+        if sampled is None:
+            return None
+        x, dx, valid, kind, pmf, a, solid = sampled
+        lamp = mi.Point3f(*[float(c) for c in light])
+        with dr.suspend_grad():
+            x_d, dx_d = dr.detach(x), dr.detach(dx)
+            away = dr.normalize(x_d - lamp)
+            found, start = _first_hit_past_own(scene, csg, x_d, away, dr.inf, dr.norm(x_d - lamp), _contour(kind), a,
+                                               solid, valid)
+            valid &= found
+            ray = mi.Ray3f(x_d + start * away, away)
+        with dr.resume_grad():
+            si, _, _, _, _ = csg.intersect(scene, ray, valid, attached=True)
+            y0_a, n_a = mi.Point3f(si.p), mi.Vector3f(si.n)
+        with dr.suspend_grad():
+            y0, n = dr.detach(y0_a), dr.detach(n_a)
+            valid &= si.is_valid()
+            reach = dr.dot(x_d - lamp, n)
+            valid &= dr.abs(reach) > 1e-6 * dr.norm(x_d - lamp)
+            # A camera ray to y0 that passes the casting point itself sees the shadow's edge
+            # right behind the caster's own contour, which the primary term counts (a light at
+            # the camera hides every shadow behind its caster): only edges clear of it count.
+            cam = mi.Point3f(*[float(c) for c in camera])
+            towards = cam - y0
+            closest = y0 + towards * (dr.dot(x_d - y0, towards) / dr.squared_norm(towards))
+            valid &= dr.norm(x_d - closest) > SHADOW_GAP * dr.norm(x_d - cam)
+            # the receiver seen by the camera: a ray from just in front of it is not blocked
+            distance = dr.norm(towards)
+            view_ray = mi.Ray3f(y0 + OFFSET * towards, towards / distance)
+            view_ray.maxt = (1.0 - 2.0 * OFFSET) * distance
+            valid &= ~csg.occluded(scene, view_ray, valid)
+            scale = dr.dot(y0 - lamp, n) / reach
+            dy = scale * (dx_d - away * (dr.dot(dx_d, n) / dr.dot(away, n)))
+        y = lamp + (x - lamp) * (dr.dot(y0_a - lamp, n_a) / dr.dot(x - lamp, n_a))
+        return self._difference(scene, sampler, camera, sensor, y, dy, pmf, valid, wavelengths, wavelength_weight,
+                                spp, SHADOW_OFFSET)
 
     def _radiance(self, scene, sampler, origin, target, wavelengths, active):
         ray = mi.Ray3f(origin, dr.normalize(target - origin))
@@ -221,3 +316,45 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     def to_string(self):
         return (f"CSGPRBProjectiveIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"sppc={self.sppc}, sppp={self.sppp}]")
+
+
+def _point_lights(scene):
+    """Positions (numpy) of the scene's emitters that sit at one point (point and spot lights)."""
+    positions = []
+    for emitter in scene.emitters():
+        if not mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaPosition):
+            continue
+        with dr.suspend_grad():
+            ds, _ = emitter.sample_direction(dr.zeros(mi.Interaction3f), mi.Point2f(0.5, 0.5))
+        positions.append(np.array([dr.slice(ds.p.x), dr.slice(ds.p.y), dr.slice(ds.p.z)], np.float64))
+    return positions
+
+
+def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, leaf, solid, active):
+    """(found, start): whether the ray from `origin` (a curve point) meets anything within
+    `length`, and the distance from which its first hit lies. Tested from just past the
+    point (OFFSET of `scale`, its distance from the viewpoint), so that the point's own surfaces do not count; a
+    contour point's ray grazes its own leaf, and in float32 meets it again near the point
+    (63 % of a sphere's contour points came out hidden by their own sphere from 1e-5 of the
+    distance), so such re-hits of the same leaf within CONTOUR_VIEW_OFFSET of the scale are
+    stepped past, up to twice (a larger start offset would also step past a face just in
+    front of the point: a hole's contour hidden just beneath the face it cuts)."""
+    start = OFFSET * scale
+    found = mi.Bool(False)
+    active = mi.Bool(active)
+    for _ in range(3):
+        ray = mi.Ray3f(origin + start * direction, direction)
+        ray.maxt = length - start
+        si, _, csg_hit, prim, shape = csg.intersect(scene, ray, active)
+        hit = active & si.is_valid()
+        own = hit & contour & csg_hit & (prim == leaf) & (shape == solid) & (start + si.t < CONTOUR_VIEW_OFFSET * scale)
+        found |= hit & ~own
+        start = dr.select(own, start + si.t + OFFSET * scale, start)
+        active &= own
+    return found, start
+
+
+def _contour(kind):
+    """Curves on a smooth surface where the viewpoint's rays graze it."""
+    return ((kind == csg_edges.SPHERE_SILHOUETTE) | (kind == csg_edges.CONE_SILHOUETTE)
+            | (kind == csg_edges.TORUS_SILHOUETTE))
