@@ -1,5 +1,5 @@
 """The `csg_prb_projective` integrator: csg_prb plus the boundary derivatives of what the camera
-sees directly and of the shadows point lights cast."""
+sees directly and of the shadows point, spot and directional lights cast."""
 from __future__ import annotations
 
 import drjit as dr
@@ -78,14 +78,14 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     is blocked) adds nothing, and one that is not on the solid's boundary has no radiance
     difference across it. Forward and backward mode.
 
-    Shadows of point and spot lights: the same curves, seen from the light, cast the edges
-    of shadows where the light's rays through them meet a surface (the floor, another csg
-    shape, the solid itself); the camera sees those edges move as it sees any curve (each
-    edge point the central projection of its curve point onto the receiver's tangent plane,
-    which moves too where the receiver is a csg shape).
+    Shadows of point, spot and directional lights: the same curves, seen from the light,
+    cast the edges of shadows where the light's rays through them meet a surface (the floor,
+    another csg shape, the solid itself); the camera sees those edges move as it sees any
+    curve (each edge point the projection of its curve point along the light's ray onto the
+    receiver's tangent plane, which moves too where the receiver is a csg shape).
 
     Not yet differentiated: the curves of quadrics, where two meshes' triangles meet, where
-    a torus meets a mesh's triangles, shadows of area, directional and environment lights,
+    a torus meets a mesh's triangles, shadows of area and environment lights,
     and shadows and curves seen in reflections. Perspective cameras only.
 
     .. code-block:: python
@@ -155,11 +155,11 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             wavelengths, wavelength_weight = sensor.sample_wavelengths(
                 dr.zeros(mi.SurfaceInteraction3f), sampler.next_1d() if mi.is_spectral else 0.0)
         terms = [self._primary_term(scene, sensor, csg, camera, sampler, spp, wavelengths, wavelength_weight)]
-        for light in _point_lights(scene):
-            if np.linalg.norm(light - camera) <= 1e-6 * max(1.0, np.linalg.norm(camera)):
+        for light, direction in _shadow_lights(scene):
+            if direction is None and np.linalg.norm(light - camera) <= 1e-6 * max(1.0, np.linalg.norm(camera)):
                 continue          # a light at the camera hides every shadow behind its caster
             terms.append(self._shadow_term(scene, sensor, csg, camera, light, sampler, spp, wavelengths,
-                                           wavelength_weight))
+                                           wavelength_weight, direction))
         terms = [term for term in terms if term is not None]
         if not terms:
             return None
@@ -168,10 +168,12 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         film.put_block(block)
         return film.develop()
 
-    def _sample_curves(self, scene, csg, viewpoint, sampler):
+    def _sample_curves(self, scene, csg, viewpoint, sampler, scale=None):
         """Points on the curves of the scene's csg shapes as seen from `viewpoint` (the camera,
         or a light), sampled in proportion to their length over their distance: (x attached to
-        the shapes' parameters, dx/du, valid, kind, pmf), or None where there are no curves."""
+        the shapes' parameters, dx/du, valid, kind, pmf, leaf a, solid), or None where there are
+        no curves. `scale`: the length the visibility test's offsets are fractions of (default:
+        the distance to the viewpoint; a directional light's stand-in point is far away)."""
         curves = [csg_edges.Curves(shape, viewpoint) for shape in csg.csg]
         if not sum(c.count for c in curves):
             return None
@@ -207,8 +209,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             x_d = dr.detach(x)
             towards = view - x_d
             distance = dr.norm(towards)
-            found, _ = _first_hit_past_own(scene, csg, x_d, towards / distance, (1.0 - OFFSET) * distance, distance,
-                                           _contour(kind), a, solid, valid)
+            found, _ = _first_hit_past_own(scene, csg, x_d, towards / distance, (1.0 - OFFSET) * distance,
+                                           distance if scale is None else scale, _contour(kind), a, solid, valid)
             valid &= ~found
         return x, dx, valid, kind, pmf, a, solid
 
@@ -261,24 +263,31 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         return self._difference(scene, sampler, camera, sensor, x, dx, pmf, valid, wavelengths, wavelength_weight,
                                 spp)
 
-    def _shadow_term(self, scene, sensor, csg, camera, light, sampler, spp, wavelengths, wavelength_weight):
+    def _shadow_term(self, scene, sensor, csg, camera, light, sampler, spp, wavelengths, wavelength_weight,
+                     direction=None):
         """The shadows the curves cast from a point-like light at `light`: a curve point x the
         light sees casts the edge of a shadow where the light's ray through x, continued,
         meets a surface (y0, normal n). Within that surface's tangent plane the edge is the
         curve's central projection from the light, y = l + (x - l) ((y0 - l) . n) / ((x - l)
         . n), which moves with x, and with y0 and n where the receiver is a csg shape (a hole's
         rim casting its shadow into the hole moves with it); the camera sees its image as it
-        sees any curve. Mitsuba's own shapes receive as if they stood still."""
-        sampled = self._sample_curves(scene, csg, light, sampler)
+        sees any curve. Mitsuba's own shapes receive as if they stood still.
+
+        A directional light (`direction`, where its light travels) is seen from a stand-in
+        point (`light`) far along it, and its edges are parallel projections, y = x + d
+        ((y0 - x) . n) / (d . n)."""
+        parallel = direction is not None
+        size = float(np.linalg.norm(np.array(scene.bbox().extents())))
+        sampled = self._sample_curves(scene, csg, light, sampler, size if parallel else None)
         if sampled is None:
             return None
         x, dx, valid, kind, pmf, a, solid = sampled
         lamp = mi.Point3f(*[float(c) for c in light])
         with dr.suspend_grad():
             x_d, dx_d = dr.detach(x), dr.detach(dx)
-            away = dr.normalize(x_d - lamp)
-            found, start = _first_hit_past_own(scene, csg, x_d, away, dr.inf, dr.norm(x_d - lamp), _contour(kind), a,
-                                               solid, valid)
+            away = mi.Vector3f(*[float(c) for c in direction]) if parallel else dr.normalize(x_d - lamp)
+            found, start = _first_hit_past_own(scene, csg, x_d, away, dr.inf, size if parallel else dr.norm(x_d - lamp),
+                                               _contour(kind), a, solid, valid)
             valid &= found
             ray = mi.Ray3f(x_d + start * away, away)
         with dr.resume_grad():
@@ -288,7 +297,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             y0, n = dr.detach(y0_a), dr.detach(n_a)
             valid &= si.is_valid()
             reach = dr.dot(x_d - lamp, n)
-            valid &= dr.abs(reach) > 1e-6 * dr.norm(x_d - lamp)
+            valid &= dr.abs(dr.dot(away, n)) > 1e-6
             # A camera ray to y0 that passes the casting point itself sees the shadow's edge
             # right behind the caster's own contour, which the primary term counts (a light at
             # the camera hides every shadow behind its caster): only edges clear of it count.
@@ -301,9 +310,12 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             view_ray = mi.Ray3f(y0 + OFFSET * towards, towards / distance)
             view_ray.maxt = (1.0 - 2.0 * OFFSET) * distance
             valid &= ~csg.occluded(scene, view_ray, valid)
-            scale = dr.dot(y0 - lamp, n) / reach
+            scale = 1.0 if parallel else dr.dot(y0 - lamp, n) / reach
             dy = scale * (dx_d - away * (dr.dot(dx_d, n) / dr.dot(away, n)))
-        y = lamp + (x - lamp) * (dr.dot(y0_a - lamp, n_a) / dr.dot(x - lamp, n_a))
+        if parallel:
+            y = x + away * (dr.dot(y0_a - x, n_a) / dr.dot(away, n_a))
+        else:
+            y = lamp + (x - lamp) * (dr.dot(y0_a - lamp, n_a) / dr.dot(x - lamp, n_a))
         return self._difference(scene, sampler, camera, sensor, y, dy, pmf, valid, wavelengths, wavelength_weight,
                                 spp, SHADOW_OFFSET)
 
@@ -318,16 +330,33 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
                 f"sppc={self.sppc}, sppp={self.sppp}]")
 
 
-def _point_lights(scene):
-    """Positions (numpy) of the scene's emitters that sit at one point (point and spot lights)."""
-    positions = []
+# A directional light's curves are seen from a point this many scene sizes up its beam:
+# their contours then lie within ~1e-5 of the size of the parallel view's.
+FAR = 1e5
+
+
+def _shadow_lights(scene):
+    """(position, direction) per emitter that casts sharp shadows: point and spot lights
+    (direction None), directional lights (their light's direction, and a stand-in position
+    FAR scene sizes up the beam)."""
+    lights = []
+    bbox = scene.bbox()
+    centre = np.array(bbox.center(), np.float64)
+    size = float(np.linalg.norm(np.array(bbox.extents())))
     for emitter in scene.emitters():
-        if not mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaPosition):
+        point = mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaPosition)
+        if not (point or mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaDirection)):
             continue
+        it = dr.zeros(mi.Interaction3f)
+        it.p = mi.Point3f(*[float(c) for c in centre])
         with dr.suspend_grad():
-            ds, _ = emitter.sample_direction(dr.zeros(mi.Interaction3f), mi.Point2f(0.5, 0.5))
-        positions.append(np.array([dr.slice(ds.p.x), dr.slice(ds.p.y), dr.slice(ds.p.z)], np.float64))
-    return positions
+            ds, _ = emitter.sample_direction(it, mi.Point2f(0.5, 0.5))
+        if point:
+            lights.append((np.array([dr.slice(ds.p.x), dr.slice(ds.p.y), dr.slice(ds.p.z)], np.float64), None))
+        else:
+            towards = np.array([dr.slice(ds.d.x), dr.slice(ds.d.y), dr.slice(ds.d.z)], np.float64)
+            lights.append((centre + towards * FAR * max(size, 1e-3), -towards))
+    return lights
 
 
 def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, leaf, solid, active):

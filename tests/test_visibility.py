@@ -26,7 +26,7 @@ BSDF = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.6, 0.
 
 
 def scene_dict(model, integrator, spp, size=(64, 48), target=(0, 0, 0), fov=40, backdrop=False, lamp=CAMERA,
-               floor=False):
+               floor=False, sun=None):
     scene = {
         "type": "scene", "integrator": integrator,
         "sensor": {"type": "perspective", "fov": fov,
@@ -37,6 +37,8 @@ def scene_dict(model, integrator, spp, size=(64, 48), target=(0, 0, 0), fov=40, 
         "object": {"type": "csg", "model": csg.model_ref(model), "bsdf": BSDF},
         "lamp": {"type": "point", "position": list(lamp), "intensity": 60.0},
     }
+    if sun is not None:
+        scene["lamp"] = {"type": "directional", "direction": list(sun), "irradiance": 3.0}
     if floor:
         # A grey floor at z = 0 under the model, for shadows cast by a lamp away from the camera.
         scene["floor"] = {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": 0.7},
@@ -236,6 +238,12 @@ def test_shadow_edges_move(model, weights):
     """Before the shadow term: summed gradients 30.2 / -273.9 / 46.7 against central
     differences -40.0 / -913.8 / 49.9 (the sphere's shadow on the floor missing)."""
     check(model, "primitive_to_world", weights, spp=512, eps=0.01, lamp=SHADOW_LAMP, floor=True)
+
+
+def test_shadow_edges_of_a_directional_light_move():
+    """The same sphere over the floor, lit by a sun (a directional light), moving along x."""
+    check(csg.Sphere(0.6).translate((0.3, 0.2, 1.0)), "primitive_to_world", [0, 0, 0, 1] + [0] * 8, spp=512,
+          eps=0.01, sun=(0.5, -0.4, -1.0), floor=True)
 
 
 PRISM = csg.Prism(6, 1.0, 2.0).rotate((0, 0, 1), 10) - csg.Sphere(0.6).translate((0.9, -0.5, 0.3))
