@@ -287,7 +287,7 @@ class Curves:
             crossing &= inside & (near < far) & np.isfinite(near) & np.isfinite(far)
             data = np.column_stack([face_plane[i], face_plane[j], near, far])[crossing]
             add(PLANE_PLANE, p[crossing], q[crossing], 0, (far - near)[crossing], data)
-        for rows in _surface_pair_curves(flat, overlapping):
+        for rows in _surface_pair_curves(flat, overlapping, uniform):
             add(SURFACE_PAIR, *rows)
         kind, a, b, extra, length, data = (np.concatenate(column) for column in zip(*parts))
         self.count = len(kind)
@@ -383,16 +383,15 @@ def _chords(points, f):
     return np.concatenate(pairs)
 
 
-def _surface_pair_curves(flat, overlapping):
+def _surface_pair_curves(flat, overlapping, uniform):
     """Rows for `Curves.add` (a, b, extra, length, data) of the SURFACE_PAIR chords: faces of
     sphere, cone and torus leaves against faces of other such leaves, and tori against box
-    and convex faces; pairs the closed forms cover are left to them."""
+    and convex faces; pairs the closed forms cover are left to them (`uniform`: which leaves
+    have uniform scales, whose sphere pairs SPHERE_SPHERE lists)."""
     shape = flat.prim_shape
     curved = np.flatnonzero(np.isin(shape, (K.SPHERE, K.CONE, K.TORUS)))
     faced = np.flatnonzero(np.isin(shape, (K.SPHERE, K.CONE, K.TORUS, K.BOX, K.CONVEX)))
     i, j = overlapping(curved, faced)
-    scale = np.linalg.norm(flat.prim_to_world[:, :3, :3], axis=1)
-    uniform = np.ptp(scale, axis=1) <= 1e-6 * scale.max(axis=1)
     rows = []
     for p, q in zip(curved[i], faced[j]):
         if p == q:

@@ -362,8 +362,9 @@ def _shadow_lights(scene):
 def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, leaf, solid, active):
     """(found, start): whether the ray from `origin` (a curve point) meets anything within
     `length`, and the distance from which its first hit lies. Tested from just past the
-    point (OFFSET of `scale`, its distance from the viewpoint), so that the point's own surfaces do not count; a
-    contour point's ray grazes its own leaf, and in float32 meets it again near the point
+    point (OFFSET of `scale`: its distance from the viewpoint, or the scene's size for a
+    directional light), so that the point's own surfaces do not count; a contour point's
+    ray grazes its own leaf, and in float32 meets it again near the point
     (63 % of a sphere's contour points came out hidden by their own sphere from 1e-5 of the
     distance), so such re-hits of the same leaf within CONTOUR_VIEW_OFFSET of the scale are
     stepped past, up to twice (a larger start offset would also step past a face just in

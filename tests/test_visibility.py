@@ -2,10 +2,11 @@
 
 Forward-mode gradient images over the whole image (silhouette and CSG-edge pixels included)
 against central differences of csg_path renders with one seed. The point light sits at the
-camera, so no shadow edge is in view, except in the shadow tests, whose lamp stands aside
-over a floor (csg_prb differentiates no shadows); the background is black. Metric (the visibility issue's): the summed gradient within 5 % of
-the finite difference's, a per-pixel correlation of at least 0.9, and the right sign; the
-same numbers for csg_prb say how far interior-only derivatives are off.
+camera, so no shadow edge is in view, except in the shadow tests, whose light stands aside
+over a floor (csg_prb differentiates no shadows); the background is black. Metric (the
+visibility issue's): the summed gradient within 5 % of the finite difference's, a per-pixel
+correlation of at least 0.9, and the right sign; the same numbers for csg_prb say how far
+interior-only derivatives are off.
 """
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ loops until its slowest lane is done. In a path tracer's bounce and shadow rays,
 misses the model's box sits idle beside one crossing a hundred nodes, and neighbours start
 from unrelated points in unrelated directions. Tracing only the rays that meet the root box,
 grouped by where they start and where they go, fills the packets with rays that do similar
-work (benchmarks/mesh_route.py's csg_path frames).
+work (benchmarks/incoherent_rays.py).
 
 The order is a counting sort on a key built from the ray's origin cell in the root box and
 its direction cell on an octahedral map, with Dr.Jit's atomics: it runs on any backend and
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import drjit as dr
 
-from .shapes import box_entry
+from .automaton import _box_hit
 
 # Origin cells per axis of the root box (2^4) and direction cells per axis of the octahedral
 # map (2^4): the key has 3 * 4 + 2 * 4 = 20 bits, the histogram 2^20 buckets. Measured on
@@ -36,9 +36,7 @@ def _spread(b, x, bits: int, stride: int):
 
 def _cell(b, x, bits: int):
     """x in [-1, 1] (clamped) to a cell index in [0, 2^bits)."""
-    top = (1 << bits) - 1
-    q = b.UInt32(dr.clip((x + 1.0) * (0.5 * (1 << bits)), 0.0, float(top)))
-    return q
+    return b.UInt32(dr.clip((x + 1.0) * (0.5 * (1 << bits)), 0.0, float((1 << bits) - 1)))
 
 
 def sort_keys(b, o, d):
@@ -62,12 +60,8 @@ def sort_keys(b, o, d):
 
 def root_box_mask(b, tree, o, inv_d, tmin, tmax, active):
     """Rays (scene frame) that meet the root box within [tmin, tmax]: the only ones with work."""
-    box = tree.node_box
-    root = dr.opaque(b.UInt32, tree.root * 8)   # opaque: another model, the same kernel
-    lower = [dr.gather(b.Float, box, root + i) for i in range(3)]
-    upper = [dr.gather(b.Float, box, root + 4 + i) for i in range(3)]
-    near, far = box_entry(lower, upper, o, inv_d)
-    return b.Bool(active) & (near <= far) & (far >= tmin) & (near <= tmax)
+    root = dr.opaque(b.UInt32, tree.root)   # opaque: another model, the same kernel
+    return b.Bool(active) & _box_hit(b, tree, root, o, inv_d, tmin, tmax, True)
 
 
 def coherent_order(b, key, mask):
