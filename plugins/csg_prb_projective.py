@@ -1,5 +1,5 @@
 """The `csg_prb_projective` integrator: csg_prb plus the boundary derivatives of what the camera
-sees directly and of the shadows point, spot and directional lights cast."""
+sees directly and of the shadows lights cast on it."""
 from __future__ import annotations
 
 import drjit as dr
@@ -78,15 +78,18 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     is blocked) adds nothing, and one that is not on the solid's boundary has no radiance
     difference across it. Forward and backward mode.
 
-    Shadows of point, spot and directional lights: the same curves, seen from the light,
-    cast the edges of shadows where the light's rays through them meet a surface (the floor,
-    another csg shape, the solid itself); the camera sees those edges move as it sees any
-    curve (each edge point the projection of its curve point along the light's ray onto the
-    receiver's tangent plane, which moves too where the receiver is a csg shape).
+    Shadows: the same curves, seen from a light, cast the edges of shadows where the light's
+    rays through them meet a surface (the floor, another csg shape, the solid itself); the
+    camera sees those edges move as it sees any curve (each edge point the projection of its
+    curve point along the light's ray onto the receiver's tangent plane, which moves too
+    where the receiver is a csg shape), and the difference across one is the direct light of
+    that light alone. Point, spot and directional lights cast sharp shadows; an area light's
+    soft shadow is the sum of the sharp shadows of its points, one sampled per boundary
+    sample, and an environment light's (`constant`, `envmap`) that of its directions.
 
     Not yet differentiated: the curves of quadrics, where two meshes' triangles meet, where
-    a torus meets a mesh's triangles, shadows of area and environment lights,
-    and shadows and curves seen in reflections. Perspective cameras only.
+    a torus meets a mesh's triangles, and shadows and curves seen in reflections or through
+    refraction. Perspective cameras only.
 
     .. code-block:: python
 
@@ -136,7 +139,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     def render_boundary(self, scene, sensor, seed, spp):
         """The boundary terms as an image attached to the shapes' parameters (its value is 0;
         its derivative is the terms): forward_to or backward from it. The primarily visible
-        curves, and the shadows they cast from point-like lights onto what the camera sees."""
+        curves, and the shadows they cast from each light onto what the camera sees."""
         if not sensor.__repr__().startswith("PerspectiveCamera"):
             raise ValueError("csg_prb_projective: boundary derivatives need a perspective camera")
         csg = SceneCSG(scene)
@@ -155,11 +158,10 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             wavelengths, wavelength_weight = sensor.sample_wavelengths(
                 dr.zeros(mi.SurfaceInteraction3f), sampler.next_1d() if mi.is_spectral else 0.0)
         terms = [self._primary_term(scene, sensor, csg, camera, sampler, spp, wavelengths, wavelength_weight)]
-        for light, direction in _shadow_lights(scene):
-            if direction is None and np.linalg.norm(light - camera) <= 1e-6 * max(1.0, np.linalg.norm(camera)):
-                continue          # a light at the camera hides every shadow behind its caster
-            terms.append(self._shadow_term(scene, sensor, csg, camera, light, sampler, spp, wavelengths,
-                                           wavelength_weight, direction))
+        if self.max_depth >= 2:                     # else no light reaches a surface the camera sees
+            for source in _shadow_sources(scene, sampler, camera):
+                terms.append(self._shadow_term(scene, sensor, csg, camera, source, sampler, spp, wavelengths,
+                                               wavelength_weight))
         terms = [term for term in terms if term is not None]
         if not terms:
             return None
@@ -168,12 +170,14 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         film.put_block(block)
         return film.develop()
 
-    def _sample_curves(self, scene, csg, viewpoint, sampler, scale=None):
+    def _sample_curves(self, scene, csg, viewpoint, sampler, scale=None, view=None):
         """Points on the curves of the scene's csg shapes as seen from `viewpoint` (the camera,
         or a light), sampled in proportion to their length over their distance: (x attached to
         the shapes' parameters, dx/du, valid, kind, pmf, leaf a, solid), or None where there are
         no curves. `scale`: the length the visibility test's offsets are fractions of (default:
-        the distance to the viewpoint; a directional light's stand-in point is far away)."""
+        the distance to the viewpoint; a directional light's stand-in point is far away).
+        `view`: the viewpoint per lane (a point sampled on an area light), where `viewpoint`
+        only sets the sampling weights."""
         curves = [csg_edges.Curves(shape, viewpoint) for shape in csg.csg]
         if not sum(c.count for c in curves):
             return None
@@ -189,7 +193,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         extra = dr.gather(mi.UInt32, mi.UInt32(np.concatenate([c.extra for c in curves])), index)
         solid = dr.gather(mi.UInt32, mi.UInt32(shape_of), index)
         data = [dr.gather(mi.Float, mi.Float(np.ascontiguousarray(data[:, k])), index) for k in range(data.shape[1])]
-        view = mi.Point3f(*[float(c) for c in viewpoint])
+        if view is None:
+            view = mi.Point3f(*[float(c) for c in viewpoint])
 
         # The leaves' matrices, attached to each shape's primitive_to_world.
         m_a, t_a, m_b, t_b = mi.Matrix3f(0), mi.Vector3f(0), mi.Matrix3f(0), mi.Vector3f(0)
@@ -215,7 +220,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         return x, dx, valid, kind, pmf, a, solid
 
     def _difference(self, scene, sampler, camera, sensor, y, dy, pmf, valid, wavelengths, wavelength_weight, spp,
-                    offset=OFFSET):
+                    offset=OFFSET, radiance=None):
         """(film position, value, valid) of the boundary term of an image curve through y
         (attached) with tangent dy/du sampled at `pmf`: the radiance difference across it,
         from camera rays either side at offsets d and 4 d extrapolated to the curve
@@ -223,7 +228,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         rim, a silhouette, the hit point moves fast with the offset, and one offset alone is
         biased by a few percent; the offset, 1e-5 of the distance, stays well above the
         kernel's tie window; `offset` sets it), times the film Jacobian, over the pdf; its derivative is the
-        term (the curve's motion normal to itself, Mitsuba's own sensor Jacobian)."""
+        term (the curve's motion normal to itself, Mitsuba's own sensor Jacobian). `radiance(target,
+        active)`: what the camera sees through `target` (default: the integrator's estimate of
+        all of it; a shadow's edge needs only the light that casts it)."""
         cam = mi.Point3f(*[float(c) for c in camera])
         with dr.suspend_grad():
             y_d, dy_d = dr.detach(y), dr.detach(dy)
@@ -244,9 +251,12 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             jacobian = mi.ad.ProjectiveDetail.sensor_jacobian(None, sensor, sample)
             offset = offset * dr.norm(y_d - cam)
             delta = mi.Spectrum(0)
+            if radiance is None:
+                def radiance(target, active):
+                    return self._radiance(scene, sampler, cam, target, wavelengths, active)
             for factor, scale in EXTRAPOLATION:
-                inside = self._radiance(scene, sampler, cam, y_d - factor * offset * normal, wavelengths, valid)
-                outside = self._radiance(scene, sampler, cam, y_d + factor * offset * normal, wavelengths, valid)
+                inside = radiance(y_d - factor * offset * normal, valid)
+                outside = radiance(y_d + factor * offset * normal, valid)
                 delta += scale * (inside - outside)
             delta *= wavelength_weight
             valid &= dr.any(delta != 0)
@@ -263,29 +273,30 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         return self._difference(scene, sampler, camera, sensor, x, dx, pmf, valid, wavelengths, wavelength_weight,
                                 spp)
 
-    def _shadow_term(self, scene, sensor, csg, camera, light, sampler, spp, wavelengths, wavelength_weight,
-                     direction=None):
-        """The shadows the curves cast from a point-like light at `light`: a curve point x the
-        light sees casts the edge of a shadow where the light's ray through x, continued,
-        meets a surface (y0, normal n). Within that surface's tangent plane the edge is the
-        curve's central projection from the light, y = l + (x - l) ((y0 - l) . n) / ((x - l)
-        . n), which moves with x, and with y0 and n where the receiver is a csg shape (a hole's
-        rim casting its shadow into the hole moves with it); the camera sees its image as it
-        sees any curve. Mitsuba's own shapes receive as if they stood still.
+    def _shadow_term(self, scene, sensor, csg, camera, source, sampler, spp, wavelengths, wavelength_weight):
+        """The shadows the curves cast from a light `source` (a point per lane, `_Source`): a
+        curve point x the light's point l sees casts the edge of a shadow where the light's ray
+        through x, continued, meets a surface (y0, normal n). Within that surface's tangent
+        plane the edge is the curve's central projection from l, y = l + (x - l) ((y0 - l) .
+        n) / ((x - l) . n), which moves with x, and with y0 and n where the receiver is a csg
+        shape (a hole's rim casting its shadow into the hole moves with it); the camera sees
+        its image as it sees any curve, and the difference across it is the light of l alone
+        (an area light's soft shadow is the sum of the sharp ones of its points). Mitsuba's
+        own shapes receive as if they stood still.
 
-        A directional light (`direction`, where its light travels) is seen from a stand-in
-        point (`light`) far along it, and its edges are parallel projections, y = x + d
-        ((y0 - x) . n) / (d . n)."""
-        parallel = direction is not None
+        A light at infinity (directional, environment) is seen from a stand-in point far along
+        its direction, and its edges are parallel projections, y = x + d ((y0 - x) . n) /
+        (d . n), d where its light travels."""
+        parallel = source.away is not None
         size = float(np.linalg.norm(np.array(scene.bbox().extents())))
-        sampled = self._sample_curves(scene, csg, light, sampler, size if parallel else None)
+        lamp = source.lamp
+        sampled = self._sample_curves(scene, csg, source.viewpoint, sampler, size if parallel else None, lamp)
         if sampled is None:
             return None
         x, dx, valid, kind, pmf, a, solid = sampled
-        lamp = mi.Point3f(*[float(c) for c in light])
         with dr.suspend_grad():
             x_d, dx_d = dr.detach(x), dr.detach(dx)
-            away = mi.Vector3f(*[float(c) for c in direction]) if parallel else dr.normalize(x_d - lamp)
+            away = source.away if parallel else dr.normalize(x_d - lamp)
             found, start = _first_hit_past_own(scene, csg, x_d, away, dr.inf, size if parallel else dr.norm(x_d - lamp),
                                                _contour(kind), a, solid, valid)
             valid &= found
@@ -316,8 +327,11 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             y = x + away * (dr.dot(y0_a - x, n_a) / dr.dot(away, n_a))
         else:
             y = lamp + (x - lamp) * (dr.dot(y0_a - lamp, n_a) / dr.dot(x - lamp, n_a))
+
+        def light_of_source(target, active):
+            return _direct_light(scene, csg, cam, target, source, wavelengths, active)
         return self._difference(scene, sampler, camera, sensor, y, dy, pmf, valid, wavelengths, wavelength_weight,
-                                spp, SHADOW_OFFSET)
+                                spp, SHADOW_OFFSET, light_of_source)
 
     def _radiance(self, scene, sampler, origin, target, wavelengths, active):
         ray = mi.Ray3f(origin, dr.normalize(target - origin))
@@ -335,28 +349,102 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
 FAR = 1e5
 
 
-def _shadow_lights(scene):
-    """(position, direction) per emitter that casts sharp shadows: point and spot lights
-    (direction None), directional lights (their light's direction, and a stand-in position
-    FAR scene sizes up the beam)."""
-    lights = []
+class _Source:
+    """A light as the shadow term samples it: per lane a point `lamp` the curves are seen from
+    (on an area light, sampled; a light at infinity's stand-in far along its direction),
+    `away` where a light at infinity's light travels (None for lights at a finite place),
+    `viewpoint` one point for the curves' sampling weights, and `incident(si, active)`: the
+    shadow ray from a surface point to the lamp and the light arriving along it per unit of
+    BSDF value (Mitsuba's emitter sample weight), or 0 where the lamp sends none that way."""
+
+    def __init__(self, viewpoint, lamp, away, incident):
+        self.viewpoint, self.lamp, self.away, self.incident = viewpoint, lamp, away, incident
+
+
+def _shadow_sources(scene, sampler, camera):
+    """A `_Source` per emitter whose shadows the camera may see: point and spot lights (not one
+    at the camera, which hides every shadow behind its caster) and directional lights, whose
+    one lamp is the light; area lights, a point sampled on the emitting shape per lane;
+    environment lights (`constant`, `envmap`), a direction sampled per lane by the emitter."""
     bbox = scene.bbox()
     centre = np.array(bbox.center(), np.float64)
-    size = float(np.linalg.norm(np.array(bbox.extents())))
+    size = max(float(np.linalg.norm(np.array(bbox.extents()))), 1e-3)
+    far = FAR * size
+    it = dr.zeros(mi.Interaction3f)
+    it.p = mi.Point3f(*[float(c) for c in centre])
+    sources = []
     for emitter in scene.emitters():
-        point = mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaPosition)
-        if not (point or mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaDirection)):
-            continue
-        it = dr.zeros(mi.Interaction3f)
-        it.p = mi.Point3f(*[float(c) for c in centre])
+        flags = emitter.flags()
         with dr.suspend_grad():
-            ds, _ = emitter.sample_direction(it, mi.Point2f(0.5, 0.5))
-        if point:
-            lights.append((np.array([dr.slice(ds.p.x), dr.slice(ds.p.y), dr.slice(ds.p.z)], np.float64), None))
-        else:
-            towards = np.array([dr.slice(ds.d.x), dr.slice(ds.d.y), dr.slice(ds.d.z)], np.float64)
-            lights.append((centre + towards * FAR * max(size, 1e-3), -towards))
-    return lights
+            if mi.has_flag(flags, mi.EmitterFlags.DeltaPosition) or mi.has_flag(flags, mi.EmitterFlags.DeltaDirection):
+                ds, _ = emitter.sample_direction(it, mi.Point2f(0.5, 0.5))
+                towards = np.array([dr.slice(c) for c in ds.d], np.float64)
+                if mi.has_flag(flags, mi.EmitterFlags.DeltaPosition):
+                    where = np.array([dr.slice(c) for c in ds.p], np.float64)
+                    if np.linalg.norm(where - camera) <= 1e-6 * max(1.0, np.linalg.norm(camera)):
+                        continue
+                    sources.append(_Source(where, _point(where), None, _delta_incident(emitter)))
+                else:
+                    where = centre + towards * far
+                    sources.append(_Source(where, _point(where), mi.Vector3f(*[float(-c) for c in towards]),
+                                           _delta_incident(emitter)))
+            elif emitter.get_shape() is not None:
+                shape = emitter.get_shape()
+                ps = shape.sample_position(0.0, sampler.next_2d())
+                where = np.array(shape.bbox().center(), np.float64)
+                sources.append(_Source(where, mi.Point3f(ps.p), None, _area_incident(emitter, ps)))
+            elif mi.has_flag(flags, mi.EmitterFlags.Infinite):
+                ds, weight = emitter.sample_direction(it, sampler.next_2d())
+                weight = dr.select(ds.pdf > 0, weight, 0)
+                sources.append(_Source(centre + np.array([0.0, 0.0, far]), mi.Point3f(it.p) + ds.d * far, -ds.d,
+                                       _infinite_incident(ds.d, weight)))
+    return sources
+
+
+def _point(where):
+    return mi.Point3f(*[float(c) for c in where])
+
+
+def _delta_incident(emitter):
+    def incident(si, active):
+        ds, weight = emitter.sample_direction(si, mi.Point2f(0.5, 0.5), active)
+        return si.spawn_ray_to(ds.p), dr.select(ds.pdf > 0, weight, 0)
+    return incident
+
+
+def _area_incident(emitter, ps):
+    def incident(si, active):
+        towards = ps.p - si.p
+        distance = dr.norm(towards)
+        on_light = dr.zeros(mi.SurfaceInteraction3f, dr.width(towards))
+        on_light.p, on_light.n, on_light.uv, on_light.time = ps.p, ps.n, ps.uv, si.time
+        on_light.sh_frame = mi.Frame3f(ps.n)
+        on_light.wi = on_light.to_local(-towards / distance)
+        on_light.wavelengths = si.wavelengths
+        cosine = dr.maximum(dr.dot(ps.n, -towards / distance), 0.0)
+        weight = emitter.eval(on_light, active) * cosine / (dr.square(distance) * ps.pdf)
+        return si.spawn_ray_to(ps.p), dr.select(active & (ps.pdf > 0) & (distance > 0), weight, 0)
+    return incident
+
+
+def _infinite_incident(direction, weight):
+    def incident(si, active):
+        return si.spawn_ray(direction), weight
+    return incident
+
+
+def _direct_light(scene, csg, camera, target, source, wavelengths, active):
+    """What the camera sees through `target` of the light of `source` alone: the surface there,
+    lit directly by the source's lamp (zero where the lamp is hidden or the BSDF is a delta)."""
+    ray = mi.Ray3f(camera, dr.normalize(target - camera))
+    ray.wavelengths = wavelengths
+    si, bsdf, _, _, _ = csg.intersect(scene, ray, active)
+    active = active & si.is_valid()
+    shadow_ray, weight = source.incident(si, active)
+    active &= dr.any(weight != 0)
+    active &= ~csg.occluded(scene, shadow_ray, active)
+    value = bsdf.eval(mi.BSDFContext(), si, si.to_local(shadow_ray.d), active) * weight
+    return dr.select(active, value, 0)
 
 
 def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, leaf, solid, active):
