@@ -18,7 +18,11 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
   angle u about the axis, the points of the tube's circle where the normal is
   perpendicular to the line of sight (in closed form; where the branches meet, the curve
   turns back and those points are dropped).
-- CIRCLE: a fixed circle of a leaf's canonical frame: the rims of cones and cylinders.
+- QUADRIC_SILHOUETTE: the contour of a quadric leaf's side (paraboloid, hyperboloid) seen
+  from the camera, on two branches: at each angle about the axis, the heights where the
+  normal is perpendicular to the line of sight (the roots of a quadratic).
+- CIRCLE: a fixed circle of a leaf's canonical frame: the rims of cones, cylinders and
+  quadrics.
 - SEGMENT: a box edge (corners of the canonical cube).
 - POLY_EDGE: an edge of a convex polyhedron leaf (prisms, GDML polyhedra) or of a mesh
   leaf (where its two triangles are not coplanar), between two canonical vertices.
@@ -32,9 +36,10 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
   in the cone's canonical frame (z as a function of the angle, or the angle as a function
   of z on two branches when the plane is nearer the axis's direction).
 - CAP_PLANE: the chord where the plane of such a face crosses a cone or cylinder cap.
-- SURFACE_PAIR: any other curve where a face of a sphere, cone or torus leaf meets a face of
-  another sphere, cone or torus leaf, or a torus meets a box's or convex polyhedron's face
-  (a sphere cutting a cylinder, two cylinders, a torus sunk into a box). No closed form:
+- SURFACE_PAIR: any other curve where a face of a sphere, cone, quadric or torus leaf meets
+  a face of another such leaf, or a torus or quadric meets a box's or convex polyhedron's
+  face (a sphere cutting a cylinder, two cylinders, a torus sunk into a box, a paraboloid
+  cut by a plane). No closed form:
   the host traces the curve on a grid over leaf a's surface (marching squares on leaf b's
   implicit function) into chords, one curve per chord; on the device a point of a chord is
   moved onto both leaves' attached surfaces by Newton steps, x - J^T (J J^T)^-1 F with J
@@ -44,8 +49,8 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
 Each is listed where it may exist (the leaves' boxes overlap); the integrator drops points
 the camera does not see, and whether a point is on the boundary of the CSG solid is left
 to the radiance difference itself, which is zero across a curve inside the solid. Not
-listed yet (`docs/plugins.md` says which derivatives are missing): curves of quadrics,
-where two meshes' triangles meet, and where a torus meets a mesh's triangles.
+listed yet (`docs/plugins.md` says which derivatives are missing): where two meshes'
+triangles meet, and where a torus or a quadric meets a mesh's triangles.
 """
 from __future__ import annotations
 
@@ -58,7 +63,7 @@ from mitsuba_csg.engine.backend import ad_module
 from mitsuba_csg.engine.shapes import surface_function
 
 (SPHERE_SILHOUETTE, CONE_SILHOUETTE, CIRCLE, SEGMENT, SPHERE_PLANE, SPHERE_SPHERE, CONE_PLANE, CAP_PLANE,
- POLY_EDGE, PLANE_PLANE, TORUS_SILHOUETTE, SURFACE_PAIR) = range(12)
+ POLY_EDGE, PLANE_PLANE, TORUS_SILHOUETTE, SURFACE_PAIR, QUADRIC_SILHOUETTE) = range(13)
 DATA_FLOATS = 16
 # `extra` of the plane curves: for CONE_PLANE whether the curve is parametrized by height
 # (planes nearer the axis's direction; two branches) rather than by angle, for CAP_PLANE
@@ -132,6 +137,7 @@ class Curves:
         cones = np.flatnonzero(flat.prim_shape == K.CONE)
         tori = np.flatnonzero(flat.prim_shape == K.TORUS)
         convex = np.flatnonzero(flat.prim_shape == K.CONVEX)
+        quadrics = np.flatnonzero(flat.prim_shape == K.QUADRIC)
         r = flat.prim_param
         parts = []                                  # (kind, a, b, extra, length, data)
 
@@ -141,10 +147,11 @@ class Curves:
             add(POLY_EDGE, np.full(len(ends), p), p, 0, np.linalg.norm(world[:, 1] - world[:, 0], axis=1),
                 ends.reshape(-1, 6))
 
-        def add(kind, a, b, extra, length, data=None):
+        def add(kind, a, b, extra, length, data=None, head=None):
+            """`head`: the first two data floats where not leaf a's parameters."""
             a = np.atleast_1d(a)
             rows = np.zeros((len(a), DATA_FLOATS))
-            rows[:, :2] = r[a]
+            rows[:, :2] = r[a] if head is None else head
             if data is not None:
                 rows[:, 2:2 + np.shape(data)[-1]] = data
             parts.append((np.full(len(a), kind), a, np.broadcast_to(b, a.shape), np.broadcast_to(extra, a.shape),
@@ -198,6 +205,13 @@ class Curves:
             add(CONE_SILHOUETTE, cones, cones, k, side)
             rim = cones[r[cones, k] > 0]
             add(CIRCLE, rim, rim, k, 2 * np.pi * r[rim, k] * scale[rim, :2].max(axis=1))
+        for branch in (0, 1):
+            add(QUADRIC_SILHOUETTE, quadrics, quadrics, branch, 2 * np.pi * scale[quadrics].max(axis=1))
+        rim_radii = np.sqrt(np.maximum(quadric_cap_squares(r[quadrics]), 0.0))      # (Q, 2) bottom, top
+        for k in (0, 1):
+            rim = rim_radii[:, k] > 0
+            add(CIRCLE, quadrics[rim], quadrics[rim], k,
+                2 * np.pi * rim_radii[rim, k] * scale[quadrics[rim], :2].max(axis=1), head=rim_radii[rim])
         corners = np.stack([_box_corners(to_world[p]) for p in boxes]) if len(boxes) else np.zeros((0, 8, 3))
         for e, (i, j) in enumerate(_BOX_EDGES):
             add(SEGMENT, boxes, boxes, e, np.linalg.norm(corners[:, i] - corners[:, j], axis=1))
@@ -305,9 +319,17 @@ _GRID_ANGLE, _GRID_OTHER = 96, 40
 _CONE_FACES = (0, 1, 2)            # side, bottom cap (z = -1), top cap (z = +1)
 
 
+def quadric_cap_squares(param):
+    """Squared radii (..., 2) of a quadric leaf's bottom and top caps, q(-1) and q(+1) for
+    rho^2 = q(z) = a z^2 + b z + c, c = 1 - a - |b| (engine.shapes), from its params (..., 2)."""
+    a, b = param[..., 0], param[..., 1]
+    c = 1.0 - a - np.abs(b)
+    return np.stack([a - b + c, a + b + c], axis=-1)
+
+
 def _face_grid(shape, face, param):
-    """(n1, n2, 3) canonical points covering a face of a sphere, cone or torus leaf; rows
-    and columns wrap where the face does (endpoints repeated)."""
+    """(n1, n2, 3) canonical points covering a face of a sphere, cone, quadric or torus leaf;
+    rows and columns wrap where the face does (endpoints repeated)."""
     angle = np.linspace(0.0, 2 * np.pi, _GRID_ANGLE + 1)
     if shape == K.SPHERE:
         theta = np.linspace(0.0, np.pi, _GRID_OTHER + 1)[:, None]
@@ -318,6 +340,17 @@ def _face_grid(shape, face, param):
         ring = 1.0 + param[0] * np.cos(tube)
         return np.stack(np.broadcast_arrays(ring * np.cos(angle), ring * np.sin(angle), param[0] * np.sin(tube)),
                         axis=-1)
+    if shape == K.QUADRIC:
+        a, b = param[0], param[1]
+        c = 1.0 - a - abs(b)
+        if face == 0:
+            z = np.linspace(-1.0, 1.0, _GRID_OTHER + 1)[:, None]
+            radius = np.sqrt(np.maximum(a * z * z + b * z + c, 0.0))
+        else:
+            z = -1.0 if face == 1 else 1.0
+            cap = np.sqrt(max(quadric_cap_squares(np.asarray(param, float))[face - 1], 0.0))
+            radius = np.linspace(0.0, cap, _GRID_OTHER + 1)[:, None]
+        return np.stack(np.broadcast_arrays(radius * np.cos(angle), radius * np.sin(angle), z + 0 * angle), axis=-1)
     a, c = 0.5 * (param[0] + param[1]), 0.5 * (param[1] - param[0])
     if face == 0:
         z = np.linspace(-1.0, 1.0, _GRID_OTHER + 1)[:, None]
@@ -346,6 +379,14 @@ def _implicit(flat, prim, face, y):
             return x * x + yy * yy - (a + c * z) ** 2, np.abs(z) <= 1 + slack
         cap = -1.0 if face == 1 else 1.0
         return cap * z - 1.0, x * x + yy * yy <= param[face - 1] ** 2 * (1 + slack)
+    if shape == K.QUADRIC:
+        a, b = param[0], param[1]
+        c = 1.0 - a - abs(b)
+        if face == 0:
+            q = a * z * z + b * z + c
+            return x * x + yy * yy - q, (np.abs(z) <= 1 + slack) & (q >= -slack)
+        cap = -1.0 if face == 1 else 1.0
+        return cap * z - 1.0, x * x + yy * yy <= quadric_cap_squares(np.asarray(param, float))[face - 1] * (1 + slack)
     if shape == K.BOX:
         axis, sign = face // 2, 1.0 if face & 1 else -1.0
         others = [k for k in range(3) if k != axis]
@@ -385,12 +426,13 @@ def _chords(points, f):
 
 def _surface_pair_curves(flat, overlapping, uniform):
     """Rows for `Curves.add` (a, b, extra, length, data) of the SURFACE_PAIR chords: faces of
-    sphere, cone and torus leaves against faces of other such leaves, and tori against box
-    and convex faces; pairs the closed forms cover are left to them (`uniform`: which leaves
-    have uniform scales, whose sphere pairs SPHERE_SPHERE lists)."""
+    sphere, cone, quadric and torus leaves against faces of other such leaves, and tori and
+    quadrics against box and convex faces; pairs the closed forms cover are left to them
+    (`uniform`: which leaves have uniform scales, whose sphere pairs SPHERE_SPHERE lists)."""
     shape = flat.prim_shape
-    curved = np.flatnonzero(np.isin(shape, (K.SPHERE, K.CONE, K.TORUS)))
-    faced = np.flatnonzero(np.isin(shape, (K.SPHERE, K.CONE, K.TORUS, K.BOX, K.CONVEX)))
+    curved = np.flatnonzero(np.isin(shape, (K.SPHERE, K.CONE, K.TORUS, K.QUADRIC)))
+    faced = np.flatnonzero(np.isin(shape, (K.SPHERE, K.CONE, K.TORUS, K.QUADRIC, K.BOX, K.CONVEX)))
+    capped = (K.CONE, K.QUADRIC)
     i, j = overlapping(curved, faced)
     rows = []
     for p, q in zip(curved[i], faced[j]):
@@ -398,22 +440,24 @@ def _surface_pair_curves(flat, overlapping, uniform):
             continue
         sp, sq = shape[p], shape[q]
         flat_q = sq in (K.BOX, K.CONVEX)
-        if flat_q and sp != K.TORUS:
+        if flat_q and sp not in (K.TORUS, K.QUADRIC):
             continue                      # SPHERE_PLANE, CONE_PLANE, CAP_PLANE
         if sp == K.SPHERE and sq == K.SPHERE and uniform[p] and uniform[q]:
             continue                      # SPHERE_SPHERE
         if not flat_q and p > q:
             continue                      # two curved leaves: once, every face against every face
-        faces_p = _CONE_FACES if sp == K.CONE else (0,)
-        faces_q = (_CONE_FACES if sq == K.CONE else range(6) if sq == K.BOX
+        faces_p = _CONE_FACES if sp in capped else (0,)
+        faces_q = (_CONE_FACES if sq in capped else range(6) if sq == K.BOX
                    else range(flat.prim_plane_count[q]) if sq == K.CONVEX else (0,))
         for fp in faces_p:
-            if sp == K.CONE and fp > 0 and flat.prim_param[p, fp - 1] <= 0:
-                continue                  # a cone's tip has no cap
+            if fp > 0 and _cap_radius(flat, p, fp) <= 0:
+                continue                  # a tip has no cap
             grid = _face_grid(sp, fp, flat.prim_param[p])
             world = grid @ flat.prim_to_world[p, :3, :3].T + flat.prim_to_world[p, :3, 3]
             y_q = world @ flat.prim_to_canonical[q, :, :3].T + flat.prim_to_canonical[q, :, 3]
             for fq in faces_q:
+                if sq in capped and fq > 0 and _cap_radius(flat, q, fq) <= 0:
+                    continue
                 f, _ = _implicit(flat, q, fq, y_q)
                 chords = _chords(world, f)
                 if not len(chords):
@@ -434,6 +478,13 @@ def _surface_pair_curves(flat, overlapping, uniform):
                 extra = fp | (fq << 8) | (int(sp) << 16) | (int(sq) << 24)
                 rows.append((np.full(len(chords), p), q, extra, length, data))
     return rows
+
+
+def _cap_radius(flat, prim, face):
+    """The radius of a cone's or quadric's cap (face 1 bottom, 2 top) in its canonical frame."""
+    if flat.prim_shape[prim] == K.QUADRIC:
+        return float(np.sqrt(max(quadric_cap_squares(flat.prim_param[prim])[face - 1], 0.0)))
+    return float(flat.prim_param[prim, face - 1])
 
 
 def _box_corners(m):
@@ -509,6 +560,31 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     dx_tor = mi.Vector3f(-ring * sw - k_t * sv * cw * dv, ring * cw - k_t * sv * sw * dv, k_t * cv * dv)
     # Where the branches meet (F_v = 0) the contour turns back and its tangent diverges.
     valid_tor = (R_t > k_t) & (dr.abs(f_v) > 1e-3 * R_t)
+
+    # Quadric side contour, rho^2 = q(z) = qa z^2 + qb z + qc: at angle phi, with w = cam_x
+    # cos phi + cam_y sin phi, (x - cam) . grad g = 0 reads L(z) = (qb + 2 qa cam_z) z + 2 qc +
+    # qb cam_z = 2 w rho(z), which squared is a quadratic in z; a root is on the contour where
+    # L and w agree in sign. dz/dphi from F = L - 2 w rho: F_phi = -2 w' rho, F_z = alpha - w
+    # q'(z) / rho.
+    qa, qb = r0, r1
+    qc = 1 - qa - dr.abs(qb)
+    alpha, beta = qb + 2 * qa * cam.z, 2 * qc + qb * cam.z
+    w4 = 4 * a_w * a_w
+    c2, c1, c0 = alpha * alpha - w4 * qa, 2 * alpha * beta - w4 * qb, beta * beta - w4 * qc
+    root = dr.safe_sqrt(c1 * c1 - 4 * c2 * c0)
+    pivot = -0.5 * (c1 + dr.select(c1 >= 0, root, -root))     # the roots pivot / c2 and c0 / pivot
+    z_q = dr.select(extra == 0, pivot / c2, c0 / pivot)
+    q_z = qa * z_q * z_q + qb * z_q + qc
+    rho_q = dr.safe_sqrt(q_z)
+    slope_q = (2 * qa * z_q + qb) / (2 * rho_q)                # d rho / dz
+    f_z = alpha - 2 * a_w * slope_q
+    dz_q = 2 * da_w * rho_q / f_z
+    x_quad = mi.Vector3f(rho_q * cw, rho_q * sw, z_q)
+    dx_quad = mi.Vector3f(slope_q * dz_q * cw - rho_q * sw, slope_q * dz_q * sw + rho_q * cw, dz_q)
+    agree = (alpha * z_q + beta) * a_w
+    valid_quad = ((c1 * c1 >= 4 * c2 * c0) & (dr.abs(z_q) <= 1) & (q_z > 0)
+                  & ((agree > 0) | ((agree == 0) & (extra == 0)))
+                  & (dr.abs(f_z) > 1e-3 * (dr.abs(alpha) + 2 * dr.abs(a_w))))
 
     # Cone rim: the circle z = -1 (extra 0) or +1 (extra 1).
     rim_z = dr.select(extra == 0, -1.0, 1.0)
@@ -609,7 +685,8 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     dx_c = dr.select(kind == SPHERE_SILHOUETTE, dx_sil, zero)
     for k, x_k, dx_k in ((CONE_SILHOUETTE, x_cone, dx_cone), (CIRCLE, x_rim, dx_rim), (SEGMENT, x_seg, dx_seg),
                          (SPHERE_PLANE, x_sp, dx_sp), (CONE_PLANE, x_cp, dx_cp), (CAP_PLANE, x_cap, dx_cap),
-                         (POLY_EDGE, x_poly, dx_poly), (TORUS_SILHOUETTE, x_tor, dx_tor)):
+                         (POLY_EDGE, x_poly, dx_poly), (TORUS_SILHOUETTE, x_tor, dx_tor),
+                         (QUADRIC_SILHOUETTE, x_quad, dx_quad)):
         x_c = dr.select(kind == k, x_k, x_c)
         dx_c = dr.select(kind == k, dx_k, dx_c)
     x = m_a @ x_c + t_a
@@ -622,11 +699,12 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     dx = dr.select(kind == SURFACE_PAIR, dx_pair, dx)
     # phi = 2 pi u for the circles
     circle = (kind == SPHERE_SILHOUETTE) | (kind == CIRCLE) | (kind == SPHERE_PLANE) | (kind == SPHERE_SPHERE) | \
-        (kind == TORUS_SILHOUETTE)
+        (kind == TORUS_SILHOUETTE) | (kind == QUADRIC_SILHOUETTE)
     dx = dr.select(circle, dr.two_pi * dx, dx)
     valid &= dr.select(kind == SPHERE_SILHOUETTE, valid_sil, True)
     valid &= dr.select(kind == CONE_SILHOUETTE, valid_cone, True)
     valid &= dr.select(kind == TORUS_SILHOUETTE, valid_tor, True)
+    valid &= dr.select(kind == QUADRIC_SILHOUETTE, valid_quad, True)
     valid &= dr.select(kind == SPHERE_PLANE, valid_sp, True)
     valid &= dr.select(kind == SPHERE_SPHERE, valid_ss, True)
     valid &= dr.select(kind == CONE_PLANE, valid_cp, True)

@@ -61,14 +61,15 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
          them off. (Default: the render call's spp)
 
     `csg_prb`'s derivatives (interior: shading at a fixed visible primitive) plus those of
-    the boundaries the camera sees move: silhouettes of sphere, cylinder, cone and torus leaves,
-    edges of boxes, convex polyhedra (prisms) and mesh leaves, cylinder and cone rims, the
-    edges where a sphere meets a face of a box, polyhedron or mesh, or another sphere (the
-    CSG edges of holes), where a cylinder's or cone's side or caps meet such a face, where
-    the faces of two boxes or polyhedra (or one of them and a mesh's triangle) meet, and
-    the curves with no closed form: where sphere, cylinder, cone and torus leaves meet each
-    other, or a torus meets a box's or polyhedron's face (traced into chords on a grid,
-    each point moved onto both surfaces by Newton steps).
+    the boundaries the camera sees move: silhouettes of sphere, cylinder, cone, torus and
+    quadric (paraboloid, hyperboloid) leaves, edges of boxes, convex polyhedra (prisms) and
+    mesh leaves, rims of cylinders, cones and quadrics, the edges where a sphere meets a
+    face of a box, polyhedron or mesh, or another sphere (the CSG edges of holes), where a
+    cylinder's or cone's side or caps meet such a face, where the faces of two boxes or
+    polyhedra (or one of them and a mesh's triangle) meet, and the curves with no closed
+    form: where sphere, cylinder, cone, torus and quadric leaves meet each other, or a torus
+    or quadric meets a box's or polyhedron's face (traced into chords on a grid, each point
+    moved onto both surfaces by Newton steps).
     Points on those curves are sampled in proportion to their length in the image, each
     moving with the shapes' `primitive_to_world` (and so with the named parameters); the
     estimate is the radiance difference across the curve (camera rays either side of it, at
@@ -87,9 +88,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     soft shadow is the sum of the sharp shadows of its points, one sampled per boundary
     sample, and an environment light's (`constant`, `envmap`) that of its directions.
 
-    Not yet differentiated: the curves of quadrics, where two meshes' triangles meet, where
-    a torus meets a mesh's triangles, and shadows and curves seen in reflections or through
-    refraction. Perspective cameras only.
+    Not yet differentiated: where two meshes' triangles meet, where a torus or quadric meets
+    a mesh's triangles, shadows static Mitsuba shapes cast on moving csg shapes, and shadows
+    and curves seen in reflections or through refraction. Perspective cameras only.
 
     .. code-block:: python
 
@@ -475,4 +476,4 @@ def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, l
 def _contour(kind):
     """Curves on a smooth surface where the viewpoint's rays graze it."""
     return ((kind == csg_edges.SPHERE_SILHOUETTE) | (kind == csg_edges.CONE_SILHOUETTE)
-            | (kind == csg_edges.TORUS_SILHOUETTE))
+            | (kind == csg_edges.TORUS_SILHOUETTE) | (kind == csg_edges.QUADRIC_SILHOUETTE))
