@@ -29,17 +29,17 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
 - SPHERE_PLANE: where a sphere leaf meets the plane of a box's, convex polyhedron's or mesh
   triangle's face (a CSG edge of holes cut into them), in the sphere's canonical frame.
 - SPHERE_SPHERE: where two sphere leaves with uniform scales meet.
-- PLANE_PLANE: where faces of two box, convex or mesh leaves meet (a notch cut by a box),
-  not two meshes' triangles: the line of the two planes in world space over the overlap of
-  the faces' boxes.
+- PLANE_PLANE: where faces of two box, convex or mesh leaves meet (a notch cut by a box):
+  the line of the two planes in world space over the overlap of the faces' boxes, or, for
+  two meshes' triangles, over the segment where the two triangles cross.
 - CONE_PLANE: where a cone or cylinder side meets the plane of such a face, in closed form
   in the cone's canonical frame (z as a function of the angle, or the angle as a function
   of z on two branches when the plane is nearer the axis's direction).
 - CAP_PLANE: the chord where the plane of such a face crosses a cone or cylinder cap.
 - SURFACE_PAIR: any other curve where a face of a sphere, cone, quadric or torus leaf meets
   a face of another such leaf, or a torus or quadric meets a box's or convex polyhedron's
-  face (a sphere cutting a cylinder, two cylinders, a torus sunk into a box, a paraboloid
-  cut by a plane). No closed form:
+  face or a mesh's triangle (a sphere cutting a cylinder, two cylinders, a torus sunk into
+  a box, a paraboloid cut by a plane). No closed form:
   the host traces the curve on a grid over leaf a's surface (marching squares on leaf b's
   implicit function) into chords, one curve per chord; on the device a point of a chord is
   moved onto both leaves' attached surfaces by Newton steps, x - J^T (J J^T)^-1 F with J
@@ -49,8 +49,8 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
 Each is listed where it may exist (the leaves' boxes overlap); the integrator drops points
 the camera does not see, and whether a point is on the boundary of the CSG solid is left
 to the radiance difference itself, which is zero across a curve inside the solid. Not
-listed yet (`docs/plugins.md` says which derivatives are missing): where two meshes'
-triangles meet, and where a torus or a quadric meets a mesh's triangles.
+listed yet: none; every pair of leaf kinds has its curves here (`docs/plugins.md` says
+which derivatives are missing).
 """
 from __future__ import annotations
 
@@ -159,7 +159,7 @@ class Curves:
 
         # Face planes (canonical normal, offset) of boxes, convex polyhedra and mesh triangles,
         # one row each, with a world box per face (its leaf's, or the triangle's own).
-        face_prim, face_plane, face_lower, face_upper = [], [], [], []
+        face_prim, face_plane, face_lower, face_upper, mesh_corners = [], [], [], [], {}
         for p in boxes:
             for face in range(6):
                 normal = np.zeros(3)
@@ -183,6 +183,7 @@ class Curves:
             triangles = flat.triangles[start:end]
             corners = np.einsum("ij,tkj->tki", to_world[p, :3, :3], _triangle_corners(triangles))
             corners += to_world[p, :3, 3]
+            mesh_corners[p] = (len(face_prim), corners)            # (first face row, world corners)
             face_prim.extend([p] * len(triangles))
             face_plane.extend(flat.planes[start:end])
             face_lower.extend(corners.min(axis=1))
@@ -276,21 +277,10 @@ class Curves:
         i, j = i[keep], j[keep]
         if len(i):
             p, q = face_prim[i], face_prim[j]
-            to_canonical = flat.prim_to_canonical
-            normal_p = np.einsum("pk,pkj->pj", face_plane[i, :3], to_canonical[p, :, :3])   # world q . x = e
-            normal_q = np.einsum("pk,pkj->pj", face_plane[j, :3], to_canonical[q, :, :3])
-            e_p = face_plane[i, 3] + np.einsum("pk,pk->p", normal_p, to_world[p, :3, 3])
-            e_q = face_plane[j, 3] + np.einsum("pk,pk->p", normal_q, to_world[q, :3, 3])
-            direction = np.cross(normal_p, normal_q)
-            d2 = np.einsum("pk,pk->p", direction, direction)
-            scale_pq = np.linalg.norm(normal_p, axis=1) * np.linalg.norm(normal_q, axis=1)
-            crossing = d2 > 1e-12 * scale_pq ** 2
-            pq = np.einsum("pk,pk->p", normal_p, normal_q)
+            normal_p, e_p = _world_planes(flat, p, face_plane[i])
+            normal_q, e_q = _world_planes(flat, q, face_plane[j])
+            foot, unit, crossing = _plane_line(normal_p, e_p, normal_q, e_q)
             with np.errstate(divide="ignore", invalid="ignore"):
-                foot = (((e_p * np.einsum("pk,pk->p", normal_q, normal_q) - e_q * pq)[:, None] * normal_p
-                         + (e_q * np.einsum("pk,pk->p", normal_p, normal_p) - e_p * pq)[:, None] * normal_q)
-                        / d2[:, None])
-                unit = direction / np.sqrt(d2)[:, None]
                 lo = np.maximum(face_lower[i], face_lower[j])
                 hi = np.minimum(face_upper[i], face_upper[j])
                 margin = 1e-3 * np.max(hi - lo, axis=1, keepdims=True)
@@ -301,7 +291,13 @@ class Curves:
             crossing &= inside & (near < far) & np.isfinite(near) & np.isfinite(far)
             data = np.column_stack([face_plane[i], face_plane[j], near, far])[crossing]
             add(PLANE_PLANE, p[crossing], q[crossing], 0, (far - near)[crossing], data)
-        for rows in _surface_pair_curves(flat, overlapping, uniform):
+        mesh_list = sorted(mesh_corners)
+        for m_i, p in enumerate(mesh_list):
+            for q in mesh_list[m_i + 1:]:
+                rows = _crossing_triangles(flat, p, q, mesh_corners[p], mesh_corners[q], face_plane)
+                if rows is not None:
+                    add(PLANE_PLANE, *rows)
+        for rows in _surface_pair_curves(flat, overlapping, uniform, mesh_corners):
             add(SURFACE_PAIR, *rows)
         kind, a, b, extra, length, data = (np.concatenate(column) for column in zip(*parts))
         self.count = len(kind)
@@ -309,6 +305,91 @@ class Curves:
         self.extra = extra.astype(np.uint32)
         self.data = data.astype(np.float32)
         self.weight = length / distance[a] if self.count else np.zeros(0)
+
+
+# ---- Two meshes' triangles ----
+
+# Triangle pairs tested for crossing per numpy block (their boxes first).
+_PAIR_BLOCK = 1 << 22
+
+
+def _world_planes(flat, prim, plane):
+    """(q, e) of canonical face planes n . y = d of leaves `prim` (one per plane, or one for
+    all) in world space, q . x = e (q = M^-T n unnormalized, as the device's PLANE_PLANE
+    evaluation has them)."""
+    prim = np.broadcast_to(prim, plane.shape[:1])
+    q = np.einsum("fk,fkj->fj", plane[:, :3], flat.prim_to_canonical[prim, :, :3])
+    return q, plane[:, 3] + np.einsum("fk,fk->f", q, flat.prim_to_world[prim, :3, 3])
+
+
+def _plane_line(q_a, e_a, q_b, e_b):
+    """(foot, unit, crossing) of the lines where world planes q_a . x = e_a and q_b . x = e_b
+    meet: the point nearest the origin, the unit direction q_a x q_b, and whether they cross."""
+    direction = np.cross(q_a, q_b)
+    d2 = np.einsum("pk,pk->p", direction, direction)
+    crossing = d2 > 1e-12 * (np.linalg.norm(q_a, axis=1) * np.linalg.norm(q_b, axis=1)) ** 2
+    ab = np.einsum("pk,pk->p", q_a, q_b)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        foot = (((e_a * np.einsum("pk,pk->p", q_b, q_b) - e_b * ab)[:, None] * q_a
+                 + (e_b * np.einsum("pk,pk->p", q_a, q_a) - e_a * ab)[:, None] * q_b) / d2[:, None])
+        unit = direction / np.sqrt(d2)[:, None]
+    return foot, unit, crossing
+
+
+def _span_on_line(corners, q, e, foot, unit):
+    """(lo, hi) of where triangles (P, 3, 3) cross the planes q . x = e, as positions along
+    the lines (foot, unit) in those planes: the crossings of their edges (and their corners on
+    the plane); lo > hi where a triangle does not reach its plane."""
+    s = np.einsum("pvk,pk->pv", corners, q) - e[:, None]
+    tolerance = 1e-9 * np.abs(s).max(axis=1, keepdims=True)
+    s = np.where(np.abs(s) <= tolerance, 0.0, s)
+    nxt = np.roll(corners, -1, axis=1)
+    s_next = np.roll(s, -1, axis=1)
+    cuts = s * s_next < 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(cuts, s / (s - s_next), 0.0)
+    points = corners + w[..., None] * (nxt - corners)
+    at = np.einsum("pvk,pk->pv", points - foot[:, None], unit)
+    on = np.einsum("pvk,pk->pv", corners - foot[:, None], unit)
+    lo = np.minimum(np.where(cuts, at, np.inf).min(axis=1), np.where(s == 0, on, np.inf).min(axis=1))
+    hi = np.maximum(np.where(cuts, at, -np.inf).max(axis=1), np.where(s == 0, on, -np.inf).max(axis=1))
+    return lo, hi
+
+
+def _crossing_triangles(flat, p, q, mesh_p, mesh_q, face_plane):
+    """PLANE_PLANE rows (a, b, extra, length, data) for the triangles of mesh leaves p and q
+    that cross each other: the line of their planes over the segment both triangles hold.
+    Candidate pairs by their boxes, in blocks; None where none cross."""
+    (first_p, corners_p), (first_q, corners_q) = mesh_p, mesh_q
+    lo_p, hi_p = corners_p.min(axis=1), corners_p.max(axis=1)
+    lo_q, hi_q = corners_q.min(axis=1), corners_q.max(axis=1)
+    near_q = np.flatnonzero(np.all((lo_q <= hi_p.max(axis=0)) & (lo_p.min(axis=0) <= hi_q), axis=1))
+    if not len(near_q):
+        return None
+    step = max(1, _PAIR_BLOCK // len(near_q))
+    i_all, j_all = [], []
+    for start in range(0, len(corners_p), step):
+        block = slice(start, start + step)
+        overlap = np.all((lo_p[block, None] <= hi_q[None, near_q]) & (lo_q[None, near_q] <= hi_p[block, None]), axis=2)
+        i, j = np.nonzero(overlap)
+        i_all.append(i + start)
+        j_all.append(near_q[j])
+    i, j = np.concatenate(i_all), np.concatenate(j_all)
+    if not len(i):
+        return None
+    plane_i, plane_j = face_plane[first_p + i], face_plane[first_q + j]
+    q_i, e_i = _world_planes(flat, p, plane_i)
+    q_j, e_j = _world_planes(flat, q, plane_j)
+    foot, unit, crossing = _plane_line(q_i, e_i, q_j, e_j)
+    lo_a, hi_a = _span_on_line(corners_p[i], q_j, e_j, foot, unit)
+    lo_b, hi_b = _span_on_line(corners_q[j], q_i, e_i, foot, unit)
+    near, far = np.maximum(lo_a, lo_b), np.minimum(hi_a, hi_b)
+    keep = crossing & (near < far) & np.isfinite(near) & np.isfinite(far)
+    if not keep.any():
+        return None
+    data = np.column_stack([plane_i, plane_j, near, far])[keep]
+    count = int(keep.sum())
+    return np.full(count, p), np.full(count, q), 0, (far - near)[keep], data
 
 
 # ---- SURFACE_PAIR: curves traced on the host ----
@@ -364,7 +445,7 @@ def _face_grid(shape, face, param):
 def _implicit(flat, prim, face, y):
     """(f, on_face) of a leaf's face at canonical points y (..., 3): f = 0 on its surface,
     and whether the point lies within the face (a cone's side between its caps, a cap's disc,
-    a box face's square, a convex face's polygon)."""
+    a box face's square, a convex face's polygon, a mesh's triangle)."""
     shape, param = flat.prim_shape[prim], flat.prim_param[prim]
     x, yy, z = y[..., 0], y[..., 1], y[..., 2]
     slack = 1e-6
@@ -391,6 +472,15 @@ def _implicit(flat, prim, face, y):
         axis, sign = face // 2, 1.0 if face & 1 else -1.0
         others = [k for k in range(3) if k != axis]
         return sign * y[..., axis] - 1.0, np.all(np.abs(y[..., others]) <= 1 + slack, axis=-1)
+    if shape == K.MESH:                     # triangle `face`: inside its three edges
+        row = flat.prim_plane_start[prim] + face
+        plane, corners = flat.planes[row], _triangle_corners(flat.triangles[row:row + 1])[0]
+        sides = []
+        for k in range(3):
+            edge = corners[(k + 1) % 3] - corners[k]
+            sides.append(np.cross(edge, y - corners[k]) @ plane[:3] / np.dot(edge, edge))
+        sides = np.stack(sides)                         # same sign on all three: inside (any winding)
+        return y @ plane[:3] - plane[3], np.all(sides >= -slack, axis=0) | np.all(sides <= slack, axis=0)
     start, count = flat.prim_plane_start[prim], flat.prim_plane_count[prim]   # convex
     planes = flat.planes[start:start + count]
     values = y @ planes[:, :3].T - planes[:, 3]
@@ -424,14 +514,16 @@ def _chords(points, f):
     return np.concatenate(pairs)
 
 
-def _surface_pair_curves(flat, overlapping, uniform):
+def _surface_pair_curves(flat, overlapping, uniform, mesh_corners):
     """Rows for `Curves.add` (a, b, extra, length, data) of the SURFACE_PAIR chords: faces of
     sphere, cone, quadric and torus leaves against faces of other such leaves, and tori and
-    quadrics against box and convex faces; pairs the closed forms cover are left to them
-    (`uniform`: which leaves have uniform scales, whose sphere pairs SPHERE_SPHERE lists)."""
+    quadrics against box and convex faces and mesh triangles (those whose boxes reach the
+    leaf's); pairs the closed forms cover are left to them (`uniform`: which leaves have
+    uniform scales, whose sphere pairs SPHERE_SPHERE lists; `mesh_corners`: per mesh leaf its
+    triangles' world corners)."""
     shape = flat.prim_shape
     curved = np.flatnonzero(np.isin(shape, (K.SPHERE, K.CONE, K.TORUS, K.QUADRIC)))
-    faced = np.flatnonzero(np.isin(shape, (K.SPHERE, K.CONE, K.TORUS, K.QUADRIC, K.BOX, K.CONVEX)))
+    faced = np.flatnonzero(np.isin(shape, (K.SPHERE, K.CONE, K.TORUS, K.QUADRIC, K.BOX, K.CONVEX, K.MESH)))
     capped = (K.CONE, K.QUADRIC)
     i, j = overlapping(curved, faced)
     rows = []
@@ -439,7 +531,7 @@ def _surface_pair_curves(flat, overlapping, uniform):
         if p == q:
             continue
         sp, sq = shape[p], shape[q]
-        flat_q = sq in (K.BOX, K.CONVEX)
+        flat_q = sq in (K.BOX, K.CONVEX, K.MESH)
         if flat_q and sp not in (K.TORUS, K.QUADRIC):
             continue                      # SPHERE_PLANE, CONE_PLANE, CAP_PLANE
         if sp == K.SPHERE and sq == K.SPHERE and uniform[p] and uniform[q]:
@@ -449,6 +541,10 @@ def _surface_pair_curves(flat, overlapping, uniform):
         faces_p = _CONE_FACES if sp in capped else (0,)
         faces_q = (_CONE_FACES if sq in capped else range(6) if sq == K.BOX
                    else range(flat.prim_plane_count[q]) if sq == K.CONVEX else (0,))
+        if sq == K.MESH:
+            corners = mesh_corners[q][1]
+            faces_q = np.flatnonzero(np.all((corners.min(axis=1) <= flat.prim_upper[p])
+                                            & (flat.prim_lower[p] <= corners.max(axis=1)), axis=1))
         for fp in faces_p:
             if fp > 0 and _cap_radius(flat, p, fp) <= 0:
                 continue                  # a tip has no cap
@@ -469,13 +565,14 @@ def _surface_pair_curves(flat, overlapping, uniform):
                 if not len(chords):
                     continue
                 plane = np.zeros(4)
-                if sq == K.CONVEX:
+                if sq in (K.CONVEX, K.MESH):
                     plane = flat.planes[flat.prim_plane_start[q] + fq]
                 data = np.zeros((len(chords), 12))
                 data[:, 0:6] = chords.reshape(-1, 6)
                 data[:, 6:8] = flat.prim_param[q]
                 data[:, 8:12] = plane
-                extra = fp | (fq << 8) | (int(sp) << 16) | (int(sq) << 24)
+                # (a flat face's plane is in the data: its index, which may not fit, is not needed)
+                extra = fp | ((0 if flat_q and sq != K.BOX else int(fq)) << 8) | (int(sp) << 16) | (int(sq) << 24)
                 rows.append((np.full(len(chords), p), q, extra, length, data))
     return rows
 

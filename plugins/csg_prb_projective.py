@@ -66,10 +66,10 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     mesh leaves, rims of cylinders, cones and quadrics, the edges where a sphere meets a
     face of a box, polyhedron or mesh, or another sphere (the CSG edges of holes), where a
     cylinder's or cone's side or caps meet such a face, where the faces of two boxes or
-    polyhedra (or one of them and a mesh's triangle) meet, and the curves with no closed
-    form: where sphere, cylinder, cone, torus and quadric leaves meet each other, or a torus
-    or quadric meets a box's or polyhedron's face (traced into chords on a grid, each point
-    moved onto both surfaces by Newton steps).
+    polyhedra or meshes meet, and the curves with no closed form: where sphere, cylinder,
+    cone, torus and quadric leaves meet each other, or a torus or quadric meets a face of a
+    box, polyhedron or mesh (traced into chords on a grid, each point moved onto both
+    surfaces by Newton steps).
     Points on those curves are sampled in proportion to their length in the image, each
     moving with the shapes' `primitive_to_world` (and so with the named parameters); the
     estimate is the radiance difference across the curve (camera rays either side of it, at
@@ -88,9 +88,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     soft shadow is the sum of the sharp shadows of its points, one sampled per boundary
     sample, and an environment light's (`constant`, `envmap`) that of its directions.
 
-    Not yet differentiated: where two meshes' triangles meet, where a torus or quadric meets
-    a mesh's triangles, shadows static Mitsuba shapes cast on moving csg shapes, and shadows
-    and curves seen in reflections or through refraction. Perspective cameras only.
+    Not yet differentiated: shadows static Mitsuba shapes cast on moving csg shapes, and
+    shadows and curves seen in reflections or through refraction. Perspective cameras only.
 
     .. code-block:: python
 
