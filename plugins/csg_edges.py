@@ -15,12 +15,13 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
   cone from the camera.
 - CONE_SILHOUETTE: the two contour lines of a cone or cylinder side (one curve per line).
 - TORUS_SILHOUETTE: the contour of a torus seen from the camera, on two branches: at each
-  angle u about the axis, the points of the tube's circle where the normal is
-  perpendicular to the line of sight (in closed form; where the branches meet, the curve
-  turns back and those points are dropped).
+  angle about the axis, the points of the tube's circle where the normal is perpendicular
+  to the line of sight, or at each angle about the tube, the two such points on its
+  parallel circle (in closed form; both parametrizations, sampled as a mixture).
 - QUADRIC_SILHOUETTE: the contour of a quadric leaf's side (paraboloid, hyperboloid) seen
   from the camera, on two branches: at each angle about the axis, the heights where the
-  normal is perpendicular to the line of sight (the roots of a quadratic).
+  normal is perpendicular to the line of sight (the roots of a quadratic), or at each
+  height the two such angles (both parametrizations, sampled as a mixture).
 - CIRCLE: a fixed circle of a leaf's canonical frame: the rims of cones, cylinders and
   quadrics.
 - SEGMENT: a box edge (corners of the canonical cube).
@@ -69,6 +70,10 @@ DATA_FLOATS = 16
 # (planes nearer the axis's direction; two branches) rather than by angle, for CAP_PLANE
 # which cap. The plane itself is the curve's `data`: (normal, offset) in leaf b's frame.
 BY_HEIGHT, BRANCH, TOP_CAP = 0x8, 0x10, 0x8
+# `extra` of a torus's or quadric's contour: its branch (bit 0) and whether it is
+# parametrized by the other parameter (the tube's angle, the height) rather than the angle
+# about the axis.
+OTHER_PARAMETER = 0x2
 
 # Box edges: pairs of canonical corners (index bits = x, y, z sign).
 _BOX_EDGES = [(a, a | (1 << axis)) for axis in range(3) for a in range(8) if not a & (1 << axis)]
@@ -197,8 +202,8 @@ class Curves:
         face_size = np.linalg.norm(face_upper - face_lower, axis=1)
 
         add(SPHERE_SILHOUETTE, spheres, spheres, 0, 2 * np.pi * scale[spheres].max(axis=1))
-        for branch in (0, 1):
-            add(TORUS_SILHOUETTE, tori, tori, branch, 2 * np.pi * (1 + r[tori, 0]) * scale[tori].max(axis=1))
+        for extra in (0, 1, OTHER_PARAMETER, OTHER_PARAMETER | 1):   # equal weights: the mixture's
+            add(TORUS_SILHOUETTE, tori, tori, extra, np.pi * (1 + r[tori, 0]) * scale[tori].max(axis=1))
         for k in (0, 1):
             side = np.linalg.norm(np.einsum("pij,pj->pi", to_world[cones, :3, :3],
                                             np.column_stack([r[cones, 1] - r[cones, 0], 0 * cones, 2 + 0 * cones])),
@@ -206,8 +211,8 @@ class Curves:
             add(CONE_SILHOUETTE, cones, cones, k, side)
             rim = cones[r[cones, k] > 0]
             add(CIRCLE, rim, rim, k, 2 * np.pi * r[rim, k] * scale[rim, :2].max(axis=1))
-        for branch in (0, 1):
-            add(QUADRIC_SILHOUETTE, quadrics, quadrics, branch, 2 * np.pi * scale[quadrics].max(axis=1))
+        for extra in (0, 1, OTHER_PARAMETER, OTHER_PARAMETER | 1):
+            add(QUADRIC_SILHOUETTE, quadrics, quadrics, extra, np.pi * scale[quadrics].max(axis=1))
         rim_radii = np.sqrt(np.maximum(quadric_cap_squares(r[quadrics]), 0.0))      # (Q, 2) bottom, top
         for k in (0, 1):
             rim = rim_radii[:, k] > 0
@@ -639,49 +644,77 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
 
     # Torus contour (major radius 1, minor k = data[0]): at angle w about the axis the tube
     # point at v has normal n = (cos v cos w, cos v sin w, sin v) and n . x = cos v + k, so
-    # n . (x - cam) = 0 reads A cos v + B sin v = -k with A = 1 - (cam_x cos w + cam_y sin w),
-    # B = -cam_z: v = atan2(B, A) +- acos(-k / |(A, B)|).
+    # n . (x - cam) = 0 reads F(w, v) = A cos v + B sin v + k = 0 with A = 1 - (cam_x cos w +
+    # cam_y sin w), B = -cam_z. Each branch is listed twice, parametrized by w = phi (v =
+    # atan2(B, A) +- acos(-k / |(A, B)|)) and by v = phi (w = w0 +- acos((cos v + k - cam_z sin
+    # v) / (|cam_xy| cos v))): near a fold of one parametrization (where the contour runs along
+    # a meridian, or along a parallel) its speed diverges and so would the weights of points
+    # sampled there, so the two are combined (the balance heuristic, as the host lists them
+    # with equal weights): the tangent returned is the contour's direction D = x_w F_v - x_v
+    # F_w over |F_v| + |F_w|, the speed of neither but that of their mixture, bounded.
     k_t = r0
-    cw, sw = dr.cos(phi), dr.sin(phi)
-    a_w = cam.x * cw + cam.y * sw
-    da_w = -cam.x * sw + cam.y * cw
-    A_t, B_t = 1 - a_w, -cam.z
-    R_t = dr.sqrt(A_t * A_t + B_t * B_t)
-    v_t = dr.atan2(B_t, A_t) + dr.select(extra == 0, 1.0, -1.0) * dr.safe_acos(-k_t / R_t)
-    cv, sv = dr.cos(v_t), dr.sin(v_t)
-    ring = 1 + k_t * cv
-    x_tor = mi.Vector3f(ring * cw, ring * sw, k_t * sv)
-    # dv/dw from F(w, v) = A cos v + B sin v + k = 0: F_w = -a' cos v, F_v = -A sin v + B cos v.
+    by_tube = (extra & OTHER_PARAMETER) != 0
+    side_t = dr.select((extra & 1) == 0, 1.0, -1.0)
+    cos_p, sin_p = dr.cos(phi), dr.sin(phi)
+    A_p, B_t = 1 - (cam.x * cos_p + cam.y * sin_p), -cam.z
+    R_t = dr.sqrt(A_p * A_p + B_t * B_t)
+    v_of_w = dr.atan2(B_t, A_p) + side_t * dr.safe_acos(-k_t / R_t)
+    rho_cam = dr.sqrt(cam.x * cam.x + cam.y * cam.y)
+    c_v = (cos_p + k_t - cam.z * sin_p) / (rho_cam * cos_p)
+    w_of_v = dr.atan2(cam.y, cam.x) + side_t * dr.safe_acos(c_v)
+    w_t = dr.select(by_tube, w_of_v, phi)
+    v_t = dr.select(by_tube, phi, v_of_w)
+    c_w, s_w, cv, sv = dr.cos(w_t), dr.sin(w_t), dr.cos(v_t), dr.sin(v_t)
+    A_t = 1 - (cam.x * c_w + cam.y * s_w)
+    f_w = (cam.x * s_w - cam.y * c_w) * cv
     f_v = -A_t * sv + B_t * cv
-    dv = da_w * cv / f_v
-    dx_tor = mi.Vector3f(-ring * sw - k_t * sv * cw * dv, ring * cw - k_t * sv * sw * dv, k_t * cv * dv)
-    # Where the branches meet (F_v = 0) the contour turns back and its tangent diverges.
-    valid_tor = (R_t > k_t) & (dr.abs(f_v) > 1e-3 * R_t)
+    ring = 1 + k_t * cv
+    x_tor = mi.Vector3f(ring * c_w, ring * s_w, k_t * sv)
+    x_w = mi.Vector3f(-ring * s_w, ring * c_w, 0)
+    x_v = mi.Vector3f(-k_t * sv * c_w, -k_t * sv * s_w, k_t * cv)
+    mixture = dr.abs(f_v) + dr.abs(f_w)
+    dx_tor = (x_w * f_v - x_v * f_w) / mixture
+    valid_tor = dr.select(by_tube, (dr.abs(c_v) <= 1) & (rho_cam * cos_p != 0), R_t > k_t) & (mixture > 0)
 
-    # Quadric side contour, rho^2 = q(z) = qa z^2 + qb z + qc: at angle phi, with w = cam_x
-    # cos phi + cam_y sin phi, (x - cam) . grad g = 0 reads L(z) = (qb + 2 qa cam_z) z + 2 qc +
-    # qb cam_z = 2 w rho(z), which squared is a quadratic in z; a root is on the contour where
-    # L and w agree in sign. dz/dphi from F = L - 2 w rho: F_phi = -2 w' rho, F_z = alpha - w
-    # q'(z) / rho.
+    # Quadric side contour, rho^2 = q(z) = qa z^2 + qb z + qc: at angle phi about the axis,
+    # with w = cam_x cos phi + cam_y sin phi, (x - cam) . grad g = 0 reads F = L(z) - 2 w rho(z)
+    # = 0, L(z) = alpha z + beta = (qb + 2 qa cam_z) z + 2 qc + qb cam_z. Listed twice, as the
+    # torus's contour: by phi (z a root of L^2 = 4 w^2 q(z), a quadratic, where L and w agree
+    # in sign) and by the height z = 2 u - 1 (phi = phi0 +- acos(L / (2 rho |cam_xy|))), and
+    # mixed: the tangent D = x_phi F_z - x_z F_phi over |F_z| + pi |F_phi| (z's range is 2,
+    # phi's 2 pi).
     qa, qb = r0, r1
     qc = 1 - qa - dr.abs(qb)
     alpha, beta = qb + 2 * qa * cam.z, 2 * qc + qb * cam.z
-    w4 = 4 * a_w * a_w
+    by_height = (extra & OTHER_PARAMETER) != 0
+    first = (extra & 1) == 0
+    w_p = cam.x * cos_p + cam.y * sin_p
+    w4 = 4 * w_p * w_p
     c2, c1, c0 = alpha * alpha - w4 * qa, 2 * alpha * beta - w4 * qb, beta * beta - w4 * qc
     root = dr.safe_sqrt(c1 * c1 - 4 * c2 * c0)
     pivot = -0.5 * (c1 + dr.select(c1 >= 0, root, -root))     # the roots pivot / c2 and c0 / pivot
-    z_q = dr.select(extra == 0, pivot / c2, c0 / pivot)
+    z_of_phi = dr.select(first, pivot / c2, c0 / pivot)
+    agree = (alpha * z_of_phi + beta) * w_p
+    valid_phi = (c1 * c1 >= 4 * c2 * c0) & ((agree > 0) | ((agree == 0) & first))
+    z_h = 2 * u - 1
+    rho_h = dr.safe_sqrt(qa * z_h * z_h + qb * z_h + qc)
+    cos_h = (alpha * z_h + beta) / (2 * rho_h * rho_cam)
+    phi_of_z = dr.atan2(cam.y, cam.x) + side_t * dr.safe_acos(cos_h)
+    valid_z = (dr.abs(cos_h) <= 1) & (rho_h > 0) & (rho_cam > 0)
+    z_q = dr.select(by_height, z_h, z_of_phi)
+    phi_q = dr.select(by_height, phi_of_z, phi)
+    c_q, s_q = dr.cos(phi_q), dr.sin(phi_q)
     q_z = qa * z_q * z_q + qb * z_q + qc
     rho_q = dr.safe_sqrt(q_z)
     slope_q = (2 * qa * z_q + qb) / (2 * rho_q)                # d rho / dz
-    f_z = alpha - 2 * a_w * slope_q
-    dz_q = 2 * da_w * rho_q / f_z
-    x_quad = mi.Vector3f(rho_q * cw, rho_q * sw, z_q)
-    dx_quad = mi.Vector3f(slope_q * dz_q * cw - rho_q * sw, slope_q * dz_q * sw + rho_q * cw, dz_q)
-    agree = (alpha * z_q + beta) * a_w
-    valid_quad = ((c1 * c1 >= 4 * c2 * c0) & (dr.abs(z_q) <= 1) & (q_z > 0)
-                  & ((agree > 0) | ((agree == 0) & (extra == 0)))
-                  & (dr.abs(f_z) > 1e-3 * (dr.abs(alpha) + 2 * dr.abs(a_w))))
+    f_z = alpha - 2 * (cam.x * c_q + cam.y * s_q) * slope_q
+    f_phi = -2 * (cam.y * c_q - cam.x * s_q) * rho_q
+    x_quad = mi.Vector3f(rho_q * c_q, rho_q * s_q, z_q)
+    x_phi = mi.Vector3f(-rho_q * s_q, rho_q * c_q, 0)
+    x_z = mi.Vector3f(slope_q * c_q, slope_q * s_q, 1)
+    mixture_q = dr.abs(f_z) + dr.pi * dr.abs(f_phi)
+    dx_quad = (x_phi * f_z - x_z * f_phi) / mixture_q
+    valid_quad = dr.select(by_height, valid_z, valid_phi) & (dr.abs(z_q) <= 1) & (q_z > 0) & (mixture_q > 0)
 
     # Cone rim: the circle z = -1 (extra 0) or +1 (extra 1).
     rim_z = dr.select(extra == 0, -1.0, 1.0)
