@@ -109,7 +109,14 @@ def _ranges(first, counts):
 def _mesh_edges(triangles, normals, tolerance=1e-9):
     """Canonical end points (E, 2, 3) of a closed mesh's edges whose two triangles are not
     coplanar."""
-    corners = _triangle_corners(triangles)
+    return _bent_edges(_triangle_corners(triangles), normals, tolerance)
+
+
+def _bent_edges(corners, normals, tolerance=1e-9, open_edges=False):
+    """End points (E, 2, 3) of the edges of triangles (T, 3, 3) with unit normals (T, 3)
+    where two triangles meet at an angle, and with `open_edges` also those of one triangle
+    only (the boundary of an open mesh). Edges are matched by their end points, so meshes
+    that repeat vertices per face (Mitsuba's cube) work alike."""
     ends = np.stack([corners, np.roll(corners, -1, axis=1)], axis=2).reshape(-1, 2, 3)   # (3T, 2, 3)
     # each edge's end points in lexicographic order, so that both its triangles list it alike
     greater, equal = ends[:, 0] > ends[:, 1], ends[:, 0] == ends[:, 1]
@@ -117,12 +124,33 @@ def _mesh_edges(triangles, normals, tolerance=1e-9):
     ends[swap] = ends[swap, ::-1]
     _, edge = np.unique(ends.reshape(-1, 6), axis=0, return_inverse=True)
     edge = edge.ravel()
-    face = np.repeat(np.arange(len(triangles)), 3)
+    face = np.repeat(np.arange(len(corners)), 3)
     order = np.argsort(edge, kind="stable")
     edge, face = edge[order], face[order]
     pairs = np.flatnonzero(edge[1:] == edge[:-1])
     bent = np.einsum("ij,ij->i", normals[face[pairs]], normals[face[pairs + 1]]) < 1 - tolerance
-    return ends[order][pairs[bent]]
+    found = ends[order][pairs[bent]]
+    if open_edges:
+        alone = np.bincount(edge)[edge] == 1
+        found = np.concatenate([found, ends[order][alone]])
+    return found
+
+
+def scene_mesh_edges(scene):
+    """World end points (E, 2, 3) of the edges of the Mitsuba meshes in a scene (rectangles,
+    cubes, loaded meshes) that may cast the edge of a shadow: creases and open boundaries.
+    Mitsuba's analytic shapes (sphere, disk, cylinder) are not listed."""
+    found = [np.zeros((0, 2, 3))]
+    for shape in scene.shapes():
+        if not shape.is_mesh():
+            continue
+        vertices = np.array(shape.vertex_positions_buffer(), np.float64).reshape(-1, 3)
+        corners = vertices[np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)]
+        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        size = np.linalg.norm(normals, axis=1)
+        keep = size > 0
+        found.append(_bent_edges(corners[keep], normals[keep] / size[keep, None], 1e-6, open_edges=True))
+    return np.concatenate(found)
 
 
 class Curves:

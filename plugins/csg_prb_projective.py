@@ -86,10 +86,13 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     where the receiver is a csg shape), and the difference across one is the direct light of
     that light alone. Point, spot and directional lights cast sharp shadows; an area light's
     soft shadow is the sum of the sharp shadows of its points, one sampled per boundary
-    sample, and an environment light's (`constant`, `envmap`) that of its directions.
+    sample, and an environment light's (`constant`, `envmap`) that of its directions. The
+    edges of Mitsuba's meshes (rectangles, cubes, loaded meshes: creases and open
+    boundaries) cast shadows too, counted where they fall on a csg shape, which may move.
 
-    Not yet differentiated: shadows static Mitsuba shapes cast on moving csg shapes, and
-    shadows and curves seen in reflections or through refraction. Perspective cameras only.
+    Not yet differentiated: shadows Mitsuba's analytic shapes (sphere, disk, cylinder) cast
+    on csg shapes, and shadows and curves seen in reflections or through refraction.
+    Perspective cameras only.
 
     .. code-block:: python
 
@@ -159,9 +162,14 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
                 dr.zeros(mi.SurfaceInteraction3f), sampler.next_1d() if mi.is_spectral else 0.0)
         terms = [self._primary_term(scene, sensor, csg, camera, sampler, spp, wavelengths, wavelength_weight)]
         if self.max_depth >= 2:                     # else no light reaches a surface the camera sees
+            # Mitsuba's meshes stand still, but their shadows on moving csg shapes move.
+            static = csg_edges.scene_mesh_edges(scene) if csg.has_others else None
             for source in _shadow_sources(scene, sampler, camera):
                 terms.append(self._shadow_term(scene, sensor, csg, camera, source, sampler, spp, wavelengths,
                                                wavelength_weight))
+                if static is not None and len(static):
+                    terms.append(self._shadow_term(scene, sensor, csg, camera, source, sampler, spp, wavelengths,
+                                                   wavelength_weight, static))
         terms = [term for term in terms if term is not None]
         if not terms:
             return None
@@ -273,7 +281,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         return self._difference(scene, sampler, camera, sensor, x, dx, pmf, valid, wavelengths, wavelength_weight,
                                 spp)
 
-    def _shadow_term(self, scene, sensor, csg, camera, source, sampler, spp, wavelengths, wavelength_weight):
+    def _shadow_term(self, scene, sensor, csg, camera, source, sampler, spp, wavelengths, wavelength_weight,
+                     static=None):
         """The shadows the curves cast from a light `source` (a point per lane, `_Source`): a
         curve point x the light's point l sees casts the edge of a shadow where the light's ray
         through x, continued, meets a surface (y0, normal n). Within that surface's tangent
@@ -286,11 +295,18 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
 
         A light at infinity (directional, environment) is seen from a stand-in point far along
         its direction, and its edges are parallel projections, y = x + d ((y0 - x) . n) /
-        (d . n), d where its light travels."""
+        (d . n), d where its light travels.
+
+        `static`: the edges of Mitsuba's meshes (E, 2, 3) cast instead, onto csg shapes only
+        (elsewhere their shadows stand still)."""
         parallel = source.away is not None
         size = float(np.linalg.norm(np.array(scene.bbox().extents())))
         lamp = source.lamp
-        sampled = self._sample_curves(scene, csg, source.viewpoint, sampler, size if parallel else None, lamp)
+        scale = size if parallel else None
+        if static is None:
+            sampled = self._sample_curves(scene, csg, source.viewpoint, sampler, scale, lamp)
+        else:
+            sampled = _sample_segments(scene, csg, static, source.viewpoint, sampler, scale, lamp)
         if sampled is None:
             return None
         x, dx, valid, kind, pmf, a, solid = sampled
@@ -298,15 +314,17 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             x_d, dx_d = dr.detach(x), dr.detach(dx)
             away = source.away if parallel else dr.normalize(x_d - lamp)
             found, start = _first_hit_past_own(scene, csg, x_d, away, dr.inf, size if parallel else dr.norm(x_d - lamp),
-                                               _contour(kind), a, solid, valid)
+                                               _contour(kind), a, solid, valid, static is not None)
             valid &= found
             ray = mi.Ray3f(x_d + start * away, away)
         with dr.resume_grad():
-            si, _, _, _, _ = csg.intersect(scene, ray, valid, attached=True)
+            si, _, on_csg, _, _ = csg.intersect(scene, ray, valid, attached=True)
             y0_a, n_a = mi.Point3f(si.p), mi.Vector3f(si.n)
         with dr.suspend_grad():
             y0, n = dr.detach(y0_a), dr.detach(n_a)
             valid &= si.is_valid()
+            if static is not None:
+                valid &= on_csg
             reach = dr.dot(x_d - lamp, n)
             valid &= dr.abs(dr.dot(away, n)) > 1e-6
             # A camera ray to y0 that passes the casting point itself sees the shadow's edge
@@ -447,7 +465,7 @@ def _direct_light(scene, csg, camera, target, source, wavelengths, active):
     return dr.select(active, value, 0)
 
 
-def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, leaf, solid, active):
+def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, leaf, solid, active, mesh_edge=False):
     """(found, start): whether the ray from `origin` (a curve point) meets anything within
     `length`, and the distance from which its first hit lies. Tested from just past the
     point (OFFSET of `scale`: its distance from the viewpoint, or the scene's size for a
@@ -456,7 +474,9 @@ def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, l
     (63 % of a sphere's contour points came out hidden by their own sphere from 1e-5 of the
     distance), so such re-hits of the same leaf within CONTOUR_VIEW_OFFSET of the scale are
     stepped past, up to twice (a larger start offset would also step past a face just in
-    front of the point: a hole's contour hidden just beneath the face it cuts)."""
+    front of the point: a hole's contour hidden just beneath the face it cuts). A Mitsuba
+    mesh's edge (`mesh_edge`) has no leaf: hits on Mitsuba's shapes that near are its own faces
+    grazed."""
     start = OFFSET * scale
     found = mi.Bool(False)
     active = mi.Bool(active)
@@ -465,11 +485,35 @@ def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, l
         ray.maxt = length - start
         si, _, csg_hit, prim, shape = csg.intersect(scene, ray, active)
         hit = active & si.is_valid()
-        own = hit & contour & csg_hit & (prim == leaf) & (shape == solid) & (start + si.t < CONTOUR_VIEW_OFFSET * scale)
+        own = (~csg_hit if mesh_edge else contour & csg_hit & (prim == leaf) & (shape == solid))
+        own &= hit & (start + si.t < CONTOUR_VIEW_OFFSET * scale)
         found |= hit & ~own
         start = dr.select(own, start + si.t + OFFSET * scale, start)
         active &= own
     return found, start
+
+
+def _sample_segments(scene, csg, segments, viewpoint, sampler, scale, view):
+    """Points on fixed world segments (E, 2, 3) (Mitsuba meshes' edges) that the lamp `view`
+    (per lane) sees, sampled in proportion to their length over their distance from
+    `viewpoint`: the tuple of `_sample_curves`, x detached (they do not move)."""
+    middle = 0.5 * (segments[:, 0] + segments[:, 1])
+    length = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
+    weight = length / np.maximum(np.linalg.norm(middle - viewpoint, axis=1), 1e-9)
+    distribution = mi.DiscreteDistribution(mi.Float(weight.astype(np.float32)))
+    with dr.suspend_grad():
+        index, u, pmf = distribution.sample_reuse_pmf(sampler.next_1d())
+        ends = [mi.Point3f(*[dr.gather(mi.Float, mi.Float(np.ascontiguousarray(segments[:, e, k])), index)
+                             for k in range(3)]) for e in (0, 1)]
+        x, dx = dr.lerp(ends[0], ends[1], u), ends[1] - ends[0]
+        valid = dr.norm(dx) > 0
+        towards = view - x
+        distance = dr.norm(towards)
+        kind, none = dr.full(mi.UInt32, csg_edges.SEGMENT, dr.width(x)), dr.zeros(mi.UInt32, dr.width(x))
+        found, _ = _first_hit_past_own(scene, csg, x, towards / distance, (1.0 - OFFSET) * distance,
+                                       distance if scale is None else scale, mi.Bool(False), none, none, valid, True)
+        valid &= ~found
+    return x, dx, valid, kind, pmf, none, none
 
 
 def _contour(kind):

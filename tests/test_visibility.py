@@ -27,7 +27,7 @@ BSDF = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.6, 0.
 
 
 def scene_dict(model, integrator, spp, size=(64, 48), target=(0, 0, 0), fov=40, backdrop=False, lamp=CAMERA,
-               floor=False, sun=None, light=None):
+               floor=False, sun=None, light=None, blocker=None):
     scene = {
         "type": "scene", "integrator": integrator,
         "sensor": {"type": "perspective", "fov": fov,
@@ -42,6 +42,10 @@ def scene_dict(model, integrator, spp, size=(64, 48), target=(0, 0, 0), fov=40, 
         scene["lamp"] = {"type": "directional", "direction": list(sun), "irradiance": 3.0}
     if light is not None:
         scene["lamp"] = light()                  # a function: Mitsuba objects are made per variant
+    if blocker is not None:
+        # A Mitsuba cube (half size blocker[1]) at blocker[0]: a static caster.
+        scene["blocker"] = {"type": "cube", "bsdf": {"type": "diffuse", "reflectance": 0.5},
+                            "to_world": mi.ScalarTransform4f().translate(list(blocker[0])).scale(blocker[1])}
     if floor:
         # A grey floor at z = 0 under the model, for shadows cast by a lamp away from the camera
         # (`floor`: True, or its half size).
@@ -373,24 +377,32 @@ def _spot():
             "to_world": mi.ScalarTransform4f().look_at(list(SHADOW_LAMP), [0.3, 0.2, 0.0], [0, 0, 1])}
 
 
-@pytest.mark.parametrize("light, floor", [(_area_lamp, True), (_sky, 100), (_sky_with_a_sun, 100), (_spot, True)],
+@pytest.mark.parametrize("light", [_area_lamp, _sky, _sky_with_a_sun, _spot],
                          ids=["area light", "constant sky", "environment map", "spot light"])
-def test_shadows_of_area_and_environment_lights_move(light, floor):
+def test_shadows_of_area_and_environment_lights_move(light):
     """The sphere over the floor moving along x under lights with soft shadows: the sum of the
     sharp shadows of a point sampled per boundary sample on the lamp, or of a direction
-    sampled from the sky. Without the term (as csg_prb; the skies over the floor of half size 6):
-    23.6 / 28.0 / 13.4 / 36.6 against
-    central differences of about -30 / -48 / -37 / -47 (the derivative of the shadow's
+    sampled from the sky. Without the term (as csg_prb): 23.6 / 28.0 / 13.4 / 36.6 against
+    central differences of about -30 / -45 / -37 / -47 (the derivative of the shadow's
     penumbra missing: the wrong sign). Central differences at 16384 spp: at 4096 the spot
-    light's came out -44.8 against -47.4. Under the skies the floor reaches 100 units: its
-    edges are static casters whose shadow on the moving sphere (sky below the horizon, past
-    the floor) moves with it, which is not differentiated (docs/inverse_rendering.md, Limits);
-    with a floor of half size 6 that is 8 % of the constant sky's derivative (-48.9 +- 0.8
-    ours, -45.2 +- 0.5 central differences at eps 0.02, six seeds; with the floor at 100:
-    -46.1 +- 0.7 and -47.5 +- 0.5)."""
+    light's came out -44.8 against -47.4. Under the skies the floor's edges (a Mitsuba
+    rectangle's) cast too: the sky below the horizon, past the floor, lights the sphere's
+    underside, and that shadow's edges move over the sphere with it (the constant sky
+    without them: -48.9 +- 0.8 against -45.2 +- 0.5 at eps 0.02, six seeds; with them
+    -44.2 +- 0.9)."""
     ratio, _ = check(csg.Sphere(0.6).translate((0.3, 0.2, 1.0)), "primitive_to_world", [0, 0, 0, 1] + [0] * 8,
-                     spp=512, fd_spp=16384, eps=0.01, floor=floor, light=light)
+                     spp=512, fd_spp=16384, eps=0.01, floor=True, light=light)
     assert ratio < 0, ratio
+
+
+def test_shadow_of_a_mitsuba_mesh_on_a_moving_csg_shape():
+    """A Mitsuba cube (static) shades a csg slab that moves up: the cube's shadow on the slab
+    moves with it (its edges cast from the lamp, projected onto the moving face). Without the
+    static casters: summed gradient -433.6 against central differences -427.0, correlation
+    0.76 (the shadow's edges missing)."""
+    slab = csg.Box((1.6, 1.6, 0.3)).translate((0.0, 0.0, 0.4))
+    check(slab, "primitive_to_world", [0] * 11 + [1], spp=512, eps=0.01, lamp=SHADOW_LAMP, floor=True,
+          blocker=((-0.4, 0.5, 1.6), 0.25))
 
 
 PRISM = csg.Prism(6, 1.0, 2.0).rotate((0, 0, 1), 10) - csg.Sphere(0.6).translate((0.9, -0.5, 0.3))
