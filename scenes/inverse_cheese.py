@@ -1,11 +1,13 @@
 """Inverse rendering: recover the holes of a small Cheese from four views.
 
     ./run.sh -- python scenes/inverse_cheese.py [--integrator csg_prb_projective]
-        [--iterations 120] [--size 128x96] [--spp 8] [--out inverse_cheese]
+        [--iterations 120] [--size 128x96] [--spp 8] [--lighting camera] [--out inverse_cheese]
 
-A box of edge 2 minus 5 spheres, one cut into each visible face; four cameras around it,
-each with a point light at the camera (so no shadow falls in view: shadows are indirect
-visibility, which the integrators do not differentiate). The targets are csg_path renders
+A box of edge 2 minus 5 spheres, one cut into each visible face; four cameras around it.
+Lighting `camera`: a point light at each camera (no shadow falls in view, so the run is
+about the boundaries the camera sees); `studio`: the box stands on a grey floor under one
+square area light above and to the side and a uniform sky, the same for every view (the
+holes' rims cast soft shadows into them, and the box onto the floor). The targets are csg_path renders
 of the true model; the optimization starts from every hole moved by 0.12 and its radius
 off by 15 % (seeded), and fits the holes' centres and radii (`primitive_translation`,
 `primitive_scale`) with Adam on the mean squared image error over the views. Prints the
@@ -39,10 +41,10 @@ def model():
     return csg.difference(csg.Box(BOX), *(csg.Sphere(r).translate(c) for c, r in HOLES))
 
 
-def view(integrator, azimuth, size, spp):
+def view(integrator, azimuth, size, spp, lighting="camera"):
     a, e = np.radians(azimuth), np.radians(30)
     eye = (6.5 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])).tolist()
-    return mi.load_dict({
+    scene = {
         "type": "scene", "integrator": {"type": integrator, "max_depth": 2},
         "sensor": {"type": "perspective", "fov": 30,
                    "to_world": mi.ScalarTransform4f().look_at(eye, [0, 0, 0], [0, 0, 1]),
@@ -52,7 +54,16 @@ def view(integrator, azimuth, size, spp):
         "object": {"type": "csg", "model": csg.model_ref(model()),
                    "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.6, 0.2]}}},
         "lamp": {"type": "point", "position": eye, "intensity": 80.0},
-    })
+    }
+    if lighting == "studio":
+        scene["lamp"] = {"type": "rectangle", "emitter": {"type": "area", "radiance": 30.0},
+                         "to_world": mi.ScalarTransform4f().look_at([2.5, -1.5, 5.0], [0, 0, 0], [0, 0, 1]).scale(0.75)}
+        scene["floor"] = {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": 0.6},
+                          "to_world": mi.ScalarTransform4f().translate([0, 0, -0.5 * BOX]).scale([8, 8, 1])}
+        scene["sky"] = {"type": "constant", "radiance": 0.5}       # fill light: no face stays black
+    elif lighting != "camera":
+        raise ValueError(f"--lighting: 'camera' or 'studio', got {lighting!r}")
+    return mi.load_dict(scene)
 
 
 def errors(translation, scale):
@@ -88,6 +99,7 @@ def main(argv=None):
     parser.add_argument("--spp", type=int, default=8)
     parser.add_argument("--lr", type=float, default=0.01)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--lighting", default="camera", choices=("camera", "studio"))
     parser.add_argument("--out", type=Path, default=Path("inverse_cheese"))
     parser.add_argument("--variant", default="llvm_ad_rgb", help="an AD variant, e.g. cuda_ad_rgb")
     args = parser.parse_args(argv)
@@ -97,8 +109,8 @@ def main(argv=None):
 
     targets = []
     for azimuth in AZIMUTHS:
-        targets.append(mi.render(view("csg_path", azimuth, size, 256), spp=256, seed=0))
-    scenes = [view(args.integrator, azimuth, size, args.spp) for azimuth in AZIMUTHS]
+        targets.append(mi.render(view("csg_path", azimuth, size, 256, args.lighting), spp=256, seed=0))
+    scenes = [view(args.integrator, azimuth, size, args.spp, args.lighting) for azimuth in AZIMUTHS]
     params = [mi.traverse(scene) for scene in scenes]
     true_translation = np.array(params[0]["object.primitive_translation"])
 
@@ -145,7 +157,8 @@ def main(argv=None):
     for name, image in views:
         mi.util.write_bitmap(str(args.out / f"{name}.png"), image)
     mi.util.write_bitmap(str(args.out / "views.png"), np.concatenate([image for _, image in views], axis=1))
-    result = {"integrator": args.integrator, "size": args.size, "spp": args.spp, "lr": args.lr, "history": history}
+    result = {"integrator": args.integrator, "size": args.size, "spp": args.spp, "lr": args.lr,
+              "lighting": args.lighting, "history": history}
     (args.out / "history.json").write_text(json.dumps(result, indent=1))
     print(f"wrote {args.out}/")
     return result
