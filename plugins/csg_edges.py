@@ -139,10 +139,11 @@ def _bent_edges(corners, normals, tolerance=1e-9, open_edges=False):
 def scene_mesh_edges(scene):
     """World end points (E, 2, 3) of the edges of the Mitsuba meshes in a scene (rectangles,
     cubes, loaded meshes) that may cast the edge of a shadow: creases and open boundaries.
-    Mitsuba's analytic shapes (sphere, disk, cylinder) are not listed."""
+    Mitsuba's analytic shapes (sphere, disk, cylinder) are not listed, nor area lights' shapes
+    (the lamps themselves, lit from their own points only along their planes)."""
     found = [np.zeros((0, 2, 3))]
     for shape in scene.shapes():
-        if not shape.is_mesh():
+        if not shape.is_mesh() or shape.is_emitter():
             continue
         vertices = np.array(shape.vertex_positions_buffer(), np.float64).reshape(-1, 3)
         corners = vertices[np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)]
@@ -241,7 +242,7 @@ class Curves:
             add(CIRCLE, rim, rim, k, 2 * np.pi * r[rim, k] * scale[rim, :2].max(axis=1))
         for extra in (0, 1, OTHER_PARAMETER, OTHER_PARAMETER | 1):
             add(QUADRIC_SILHOUETTE, quadrics, quadrics, extra, np.pi * scale[quadrics].max(axis=1))
-        rim_radii = np.sqrt(np.maximum(quadric_cap_squares(r[quadrics]), 0.0))      # (Q, 2) bottom, top
+        rim_radii = np.sqrt(np.maximum(_quadric_cap_squares(r[quadrics]), 0.0))      # (Q, 2) bottom, top
         for k in (0, 1):
             rim = rim_radii[:, k] > 0
             add(CIRCLE, quadrics[rim], quadrics[rim], k,
@@ -433,7 +434,7 @@ _GRID_ANGLE, _GRID_OTHER = 96, 40
 _CONE_FACES = (0, 1, 2)            # side, bottom cap (z = -1), top cap (z = +1)
 
 
-def quadric_cap_squares(param):
+def _quadric_cap_squares(param):
     """Squared radii (..., 2) of a quadric leaf's bottom and top caps, q(-1) and q(+1) for
     rho^2 = q(z) = a z^2 + b z + c, c = 1 - a - |b| (engine.shapes), from its params (..., 2)."""
     a, b = param[..., 0], param[..., 1]
@@ -462,7 +463,7 @@ def _face_grid(shape, face, param):
             radius = np.sqrt(np.maximum(a * z * z + b * z + c, 0.0))
         else:
             z = -1.0 if face == 1 else 1.0
-            cap = np.sqrt(max(quadric_cap_squares(np.asarray(param, float))[face - 1], 0.0))
+            cap = np.sqrt(max(_quadric_cap_squares(np.asarray(param, float))[face - 1], 0.0))
             radius = np.linspace(0.0, cap, _GRID_OTHER + 1)[:, None]
         return np.stack(np.broadcast_arrays(radius * np.cos(angle), radius * np.sin(angle), z + 0 * angle), axis=-1)
     a, c = 0.5 * (param[0] + param[1]), 0.5 * (param[1] - param[0])
@@ -500,7 +501,7 @@ def _implicit(flat, prim, face, y):
             q = a * z * z + b * z + c
             return x * x + yy * yy - q, (np.abs(z) <= 1 + slack) & (q >= -slack)
         cap = -1.0 if face == 1 else 1.0
-        return cap * z - 1.0, x * x + yy * yy <= quadric_cap_squares(np.asarray(param, float))[face - 1] * (1 + slack)
+        return cap * z - 1.0, x * x + yy * yy <= _quadric_cap_squares(np.asarray(param, float))[face - 1] * (1 + slack)
     if shape == K.BOX:
         axis, sign = face // 2, 1.0 if face & 1 else -1.0
         others = [k for k in range(3) if k != axis]
@@ -613,7 +614,7 @@ def _surface_pair_curves(flat, overlapping, uniform, mesh_corners):
 def _cap_radius(flat, prim, face):
     """The radius of a cone's or quadric's cap (face 1 bottom, 2 top) in its canonical frame."""
     if flat.prim_shape[prim] == K.QUADRIC:
-        return float(np.sqrt(max(quadric_cap_squares(flat.prim_param[prim])[face - 1], 0.0)))
+        return float(np.sqrt(max(_quadric_cap_squares(flat.prim_param[prim])[face - 1], 0.0)))
     return float(flat.prim_param[prim, face - 1])
 
 
