@@ -139,8 +139,8 @@ def _bent_edges(corners, normals, tolerance=1e-9, open_edges=False):
 def scene_mesh_edges(scene):
     """World end points (E, 2, 3) of the edges of the Mitsuba meshes in a scene (rectangles,
     cubes, loaded meshes) that may cast the edge of a shadow: creases and open boundaries.
-    Mitsuba's analytic shapes (sphere, disk, cylinder) are not listed, nor area lights' shapes
-    (the lamps themselves, lit from their own points only along their planes)."""
+    Area lights' shapes are not listed (the lamps themselves, lit from their own points only
+    along their planes)."""
     found = [np.zeros((0, 2, 3))]
     for shape in scene.shapes():
         if not shape.is_mesh() or shape.is_emitter():
@@ -152,6 +152,57 @@ def scene_mesh_edges(scene):
         keep = size > 0
         found.append(_bent_edges(corners[keep], normals[keep] / size[keep, None], 1e-6, open_edges=True))
     return np.concatenate(found)
+
+
+class StaticCurves:
+    """The curves of a scene's Mitsuba shapes that may cast the edge of a shadow (they stand
+    still: their points are not attached to anything), in the form `evaluate` takes, each
+    row a kind, an extra int, a matrix and offset (canonical -> world) and DATA_FLOATS of
+    data: the meshes' creases and open edges (`scene_mesh_edges`, POLY_EDGE rows with the
+    identity), spheres' contours (SPHERE_SILHOUETTE), disks' rims (CIRCLE), and the open
+    cylinders' contour lines and rims (CONE_SILHOUETTE, CIRCLE), mapped onto the canonical
+    cone's frame (z from -1 to 1). `weight(viewpoint)`: the rows' sampling weights, about
+    their length over their distance."""
+
+    def __init__(self, scene):
+        rows = []                                   # (kind, extra, to_world (3, 4), data, length)
+
+        def add(kind, extra, to_world, data, length):
+            row = np.zeros(DATA_FLOATS)
+            row[:len(data)] = data
+            rows.append((kind, extra, to_world, row, length))
+
+        for a, b in scene_mesh_edges(scene):
+            add(POLY_EDGE, 0, np.eye(3, 4), np.concatenate([[0.0, 0.0], a, b]), np.linalg.norm(b - a))
+        for shape in scene.shapes():
+            if shape.is_emitter() or shape.shape_type() not in (mi.ShapeType.Sphere, mi.ShapeType.Disk,
+                                                               mi.ShapeType.Cylinder):
+                continue
+            m = np.array(mi.traverse(shape)["to_world"].matrix, np.float64).reshape(4, 4)[:3]
+            size = np.linalg.norm(m[:, :3], axis=0).max()
+            if shape.shape_type() == mi.ShapeType.Sphere:
+                add(SPHERE_SILHOUETTE, 0, m, [], 2 * np.pi * size)
+                continue
+            # the object's z = 0 (disk; cylinder from z = 0 to 1) is the canonical z = -1
+            stretch = 1.0 if shape.shape_type() == mi.ShapeType.Disk else 0.5
+            cone = np.column_stack([m[:, 0], m[:, 1], stretch * m[:, 2], m[:, 3] + stretch * m[:, 2]])
+            add(CIRCLE, 0, cone, [1.0, 1.0], 2 * np.pi * size)
+            if shape.shape_type() == mi.ShapeType.Cylinder:
+                add(CIRCLE, 1, cone, [1.0, 1.0], 2 * np.pi * size)
+                for line in (0, 1):
+                    add(CONE_SILHOUETTE, line, cone, [1.0, 1.0], np.linalg.norm(m[:, 2]))
+        self.count = len(rows)
+        if not rows:
+            return
+        kind, extra, to_world, data, length = zip(*rows)
+        self.kind, self.extra = np.array(kind, np.uint32), np.array(extra, np.uint32)
+        self.to_world, self.data, self.length = np.array(to_world), np.array(data), np.array(length)
+        # where each curve is, for its distance: a segment's middle, a shape's centre
+        self.centre = np.where((self.kind == POLY_EDGE)[:, None], 0.5 * (self.data[:, 2:5] + self.data[:, 5:8]),
+                               self.to_world[:, :, 3])
+
+    def weight(self, viewpoint):
+        return self.length / np.maximum(np.linalg.norm(self.centre - viewpoint, axis=1), 1e-9)
 
 
 class Curves:

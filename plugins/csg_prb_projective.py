@@ -88,10 +88,10 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     soft shadow is the sum of the sharp shadows of its points, one sampled per boundary
     sample, and an environment light's (`constant`, `envmap`) that of its directions. The
     edges of Mitsuba's meshes (rectangles, cubes, loaded meshes: creases and open
-    boundaries) cast shadows too, counted where they fall on a csg shape, which may move.
+    boundaries) and the contours and rims of its spheres, disks and (open) cylinders cast
+    shadows too, counted where they fall on a csg shape, which may move.
 
-    Not yet differentiated: shadows Mitsuba's analytic shapes (sphere, disk, cylinder) cast
-    on csg shapes, and shadows and curves seen in reflections or through refraction.
+    Not yet differentiated: shadows and curves seen in reflections or through refraction.
     Perspective cameras only.
 
     .. code-block:: python
@@ -163,11 +163,11 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         terms = [self._primary_term(scene, sensor, csg, camera, sampler, spp, wavelengths, wavelength_weight)]
         if self.max_depth >= 2:                     # else no light reaches a surface the camera sees
             # Mitsuba's meshes stand still, but their shadows on moving csg shapes move.
-            static = csg_edges.scene_mesh_edges(scene) if csg.has_others else None
+            static = csg_edges.StaticCurves(scene) if csg.has_others else None
             for source in _shadow_sources(scene, sampler, camera):
                 terms.append(self._shadow_term(scene, sensor, csg, camera, source, sampler, spp, wavelengths,
                                                wavelength_weight))
-                if static is not None and len(static):
+                if static is not None and static.count:
                     terms.append(self._shadow_term(scene, sensor, csg, camera, source, sampler, spp, wavelengths,
                                                    wavelength_weight, static))
         terms = [term for term in terms if term is not None]
@@ -297,8 +297,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         its direction, and its edges are parallel projections, y = x + d ((y0 - x) . n) /
         (d . n), d where its light travels.
 
-        `static`: the edges of Mitsuba's meshes (E, 2, 3) cast instead, onto csg shapes only
-        (elsewhere their shadows stand still)."""
+        `static`: the curves of Mitsuba's shapes (`csg_edges.StaticCurves`) cast instead, onto
+        csg shapes only (elsewhere their shadows stand still)."""
         parallel = source.away is not None
         size = float(np.linalg.norm(np.array(scene.bbox().extents())))
         lamp = source.lamp
@@ -306,7 +306,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         if static is None:
             sampled = self._sample_curves(scene, csg, source.viewpoint, sampler, scale, lamp)
         else:
-            sampled = _sample_segments(scene, csg, static, source.viewpoint, sampler, scale, lamp)
+            sampled = _sample_static(scene, csg, static, source.viewpoint, sampler, scale, lamp)
         if sampled is None:
             return None
         x, dx, valid, kind, pmf, a, solid = sampled
@@ -493,23 +493,25 @@ def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, l
     return found, start
 
 
-def _sample_segments(scene, csg, segments, viewpoint, sampler, scale, view):
-    """Points on fixed world segments (E, 2, 3) (Mitsuba meshes' edges) that the lamp `view`
+def _sample_static(scene, csg, static, viewpoint, sampler, scale, view):
+    """Points on the curves of Mitsuba's shapes (`csg_edges.StaticCurves`) that the lamp `view`
     (per lane) sees, sampled in proportion to their length over their distance from
     `viewpoint`: the tuple of `_sample_curves`, x detached (they do not move)."""
-    middle = 0.5 * (segments[:, 0] + segments[:, 1])
-    length = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
-    weight = length / np.maximum(np.linalg.norm(middle - viewpoint, axis=1), 1e-9)
-    distribution = mi.DiscreteDistribution(mi.Float(weight.astype(np.float32)))
+    distribution = mi.DiscreteDistribution(mi.Float(static.weight(viewpoint).astype(np.float32)))
     with dr.suspend_grad():
         index, u, pmf = distribution.sample_reuse_pmf(sampler.next_1d())
-        ends = [mi.Point3f(*[dr.gather(mi.Float, mi.Float(np.ascontiguousarray(segments[:, e, k])), index)
-                             for k in range(3)]) for e in (0, 1)]
-        x, dx = dr.lerp(ends[0], ends[1], u), ends[1] - ends[0]
-        valid = dr.norm(dx) > 0
+
+        def column(values, kind=mi.Float):
+            return dr.gather(kind, kind(np.ascontiguousarray(values)), index)
+        kind, extra = column(static.kind, mi.UInt32), column(static.extra, mi.UInt32)
+        m = mi.Matrix3f(*[column(static.to_world[:, i, j]) for i in range(3) for j in range(3)])
+        t = mi.Vector3f(*[column(static.to_world[:, i, 3]) for i in range(3)])
+        data = [column(static.data[:, k]) for k in range(static.data.shape[1])]
+        x, dx, valid = csg_edges.evaluate(kind, extra, m, t, m, t, data, view, u)
+        valid &= dr.norm(dx) > 0
         towards = view - x
         distance = dr.norm(towards)
-        kind, none = dr.full(mi.UInt32, csg_edges.SEGMENT, dr.width(x)), dr.zeros(mi.UInt32, dr.width(x))
+        none = dr.zeros(mi.UInt32, dr.width(x))
         found, _ = _first_hit_past_own(scene, csg, x, towards / distance, (1.0 - OFFSET) * distance,
                                        distance if scale is None else scale, mi.Bool(False), none, none, valid, True)
         valid &= ~found
