@@ -379,12 +379,24 @@ def _spot():
             "to_world": mi.ScalarTransform4f().look_at(list(SHADOW_LAMP), [0.3, 0.2, 0.0], [0, 0, 1])}
 
 
-@pytest.mark.parametrize("light", [_area_lamp, _sky, _sky_with_a_sun, _spot],
-                         ids=["area light", "constant sky", "environment map", "spot light"])
+def _spherical_lamp():
+    """A glowing Mitsuba sphere where SHADOW_LAMP stands."""
+    return {"type": "sphere", "center": list(SHADOW_LAMP), "radius": 0.4, "emitter": {"type": "area", "radiance": 30.0}}
+
+
+def _projector():
+    return {"type": "projector", "fov": 40, "scale": 30,
+            "to_world": mi.ScalarTransform4f().look_at(list(SHADOW_LAMP), [0.3, 0.2, 0.0], [0, 0, 1])}
+
+
+@pytest.mark.parametrize("light", [_area_lamp, _spherical_lamp, _sky, _sky_with_a_sun, _spot, _projector],
+                         ids=["area light", "spherical area light", "constant sky", "environment map", "spot light",
+                              "projector"])
 def test_shadows_of_area_and_environment_lights_move(light):
     """The sphere over the floor moving along x under lights with soft shadows: the sum of the
     sharp shadows of a point sampled per boundary sample on the lamp, or of a direction
-    sampled from the sky. Without the term (as csg_prb): 23.6 / 28.0 / 13.4 / 36.6 against
+    sampled from the sky (also a glowing Mitsuba sphere and a projector). Without the term (as
+    csg_prb), for the square lamp, the skies and the spot: 23.6 / 28.0 / 13.4 / 36.6 against
     central differences of about -30 / -45 / -37 / -47 (the derivative of the shadow's
     penumbra missing: the wrong sign). Central differences at 16384 spp: at 4096 the spot
     light's came out -44.8 against -47.4. Under the skies the floor's edges (a Mitsuba
