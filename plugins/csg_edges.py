@@ -49,9 +49,9 @@ curve, never across it, so only the motion normal to the curve counts, as it mus
 
 Each is listed where it may exist (the leaves' boxes overlap); the integrator drops points
 the camera does not see, and whether a point is on the boundary of the CSG solid is left
-to the radiance difference itself, which is zero across a curve inside the solid. Not
-listed yet: none; every pair of leaf kinds has its curves here (`docs/plugins.md` says
-which derivatives are missing).
+to the radiance difference itself, which is zero across a curve inside the solid. Every
+pair of leaf kinds has its curves listed (`docs/plugins.md` says which derivatives are
+still missing).
 """
 from __future__ import annotations
 
@@ -207,16 +207,16 @@ class StaticCurves:
 
 class Curves:
     """The curves of one csg shape: per curve its kind, leaves a and b, an extra int (edge,
-    branch), DATA_FLOATS of data (the cone radii of leaf a, then a face plane of leaf b, an
-    edge's end points, or two face planes and the line's parameter range) and a sampling
-    weight (about its length in the image)."""
+    branch) and DATA_FLOATS of data (the cone radii of leaf a, then a face plane of leaf b, an
+    edge's end points, or two face planes and the line's parameter range). Listed once per
+    shape and render: only `weight(viewpoint)`, the sampling weights (about each curve's
+    length in the image), depends on where the curves are seen from."""
 
-    def __init__(self, shape, camera: np.ndarray):
+    def __init__(self, shape):
         flat = shape.prepared.flat
         to_world = flat.prim_to_world
-        centre = to_world[:, :3, 3]
+        self._centre = to_world[:, :3, 3]
         scale = np.linalg.norm(to_world[:, :3, :3], axis=1)           # column lengths per primitive
-        distance = np.maximum(np.linalg.norm(centre - camera, axis=1), 1e-9)
         spheres = np.flatnonzero(flat.prim_shape == K.SPHERE)
         boxes = np.flatnonzero(flat.prim_shape == K.BOX)
         cones = np.flatnonzero(flat.prim_shape == K.CONE)
@@ -389,7 +389,12 @@ class Curves:
         self.kind, self.a, self.b = kind.astype(np.uint32), a.astype(np.uint32), b.astype(np.uint32)
         self.extra = extra.astype(np.uint32)
         self.data = data.astype(np.float32)
-        self.weight = length / distance[a] if self.count else np.zeros(0)
+        self.length = length
+
+    def weight(self, viewpoint: np.ndarray) -> np.ndarray:
+        """Each curve's length over its leaf's distance from `viewpoint`."""
+        distance = np.maximum(np.linalg.norm(self._centre - viewpoint, axis=1), 1e-9)
+        return self.length / distance[self.a]
 
 
 # ---- Two meshes' triangles ----
@@ -485,11 +490,16 @@ _GRID_ANGLE, _GRID_OTHER = 96, 40
 _CONE_FACES = (0, 1, 2)            # side, bottom cap (z = -1), top cap (z = +1)
 
 
+def _quadric(param):
+    """(a, b, c) of a quadric leaf's side rho^2 = q(z) = a z^2 + b z + c from its params
+    (..., 2): c = 1 - a - |b| (engine.shapes)."""
+    a, b = np.asarray(param, float)[..., 0], np.asarray(param, float)[..., 1]
+    return a, b, 1.0 - a - np.abs(b)
+
+
 def _quadric_cap_squares(param):
-    """Squared radii (..., 2) of a quadric leaf's bottom and top caps, q(-1) and q(+1) for
-    rho^2 = q(z) = a z^2 + b z + c, c = 1 - a - |b| (engine.shapes), from its params (..., 2)."""
-    a, b = param[..., 0], param[..., 1]
-    c = 1.0 - a - np.abs(b)
+    """Squared radii (..., 2) of a quadric leaf's bottom and top caps, q(-1) and q(+1)."""
+    a, b, c = _quadric(param)
     return np.stack([a - b + c, a + b + c], axis=-1)
 
 
@@ -507,15 +517,13 @@ def _face_grid(shape, face, param):
         return np.stack(np.broadcast_arrays(ring * np.cos(angle), ring * np.sin(angle), param[0] * np.sin(tube)),
                         axis=-1)
     if shape == K.QUADRIC:
-        a, b = param[0], param[1]
-        c = 1.0 - a - abs(b)
+        a, b, c = _quadric(param)
         if face == 0:
             z = np.linspace(-1.0, 1.0, _GRID_OTHER + 1)[:, None]
             radius = np.sqrt(np.maximum(a * z * z + b * z + c, 0.0))
         else:
             z = -1.0 if face == 1 else 1.0
-            cap = np.sqrt(max(_quadric_cap_squares(np.asarray(param, float))[face - 1], 0.0))
-            radius = np.linspace(0.0, cap, _GRID_OTHER + 1)[:, None]
+            radius = np.linspace(0.0, np.sqrt(max(a + b * z + c, 0.0)), _GRID_OTHER + 1)[:, None]
         return np.stack(np.broadcast_arrays(radius * np.cos(angle), radius * np.sin(angle), z + 0 * angle), axis=-1)
     a, c = 0.5 * (param[0] + param[1]), 0.5 * (param[1] - param[0])
     if face == 0:
@@ -546,13 +554,12 @@ def _implicit(flat, prim, face, y):
         cap = -1.0 if face == 1 else 1.0
         return cap * z - 1.0, x * x + yy * yy <= param[face - 1] ** 2 * (1 + slack)
     if shape == K.QUADRIC:
-        a, b = param[0], param[1]
-        c = 1.0 - a - abs(b)
+        a, b, c = _quadric(param)
         if face == 0:
             q = a * z * z + b * z + c
             return x * x + yy * yy - q, (np.abs(z) <= 1 + slack) & (q >= -slack)
         cap = -1.0 if face == 1 else 1.0
-        return cap * z - 1.0, x * x + yy * yy <= _quadric_cap_squares(np.asarray(param, float))[face - 1] * (1 + slack)
+        return cap * z - 1.0, x * x + yy * yy <= (a + b * cap + c) * (1 + slack)
     if shape == K.BOX:
         axis, sign = face // 2, 1.0 if face & 1 else -1.0
         others = [k for k in range(3) if k != axis]

@@ -160,16 +160,18 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         with dr.suspend_grad():
             wavelengths, wavelength_weight = sensor.sample_wavelengths(
                 dr.zeros(mi.SurfaceInteraction3f), sampler.next_1d() if mi.is_spectral else 0.0)
-        terms = [self._primary_term(scene, sensor, csg, camera, sampler, spp, wavelengths, wavelength_weight)]
+        # The curves, listed once; each viewpoint (the camera, each light) only weighs them.
+        curves = [csg_edges.Curves(shape) for shape in csg.csg]
+        terms = [self._primary_term(scene, sensor, csg, curves, camera, sampler, spp, wavelengths, wavelength_weight)]
         if self.max_depth >= 2:                     # else no light reaches a surface the camera sees
             # Mitsuba's meshes stand still, but their shadows on moving csg shapes move.
             static = csg_edges.StaticCurves(scene) if csg.has_others else None
             for source in _shadow_sources(scene, sampler, camera):
-                terms.append(self._shadow_term(scene, sensor, csg, camera, source, sampler, spp, wavelengths,
+                terms.append(self._shadow_term(scene, sensor, csg, curves, camera, source, sampler, spp, wavelengths,
                                                wavelength_weight))
                 if static is not None and static.count:
-                    terms.append(self._shadow_term(scene, sensor, csg, camera, source, sampler, spp, wavelengths,
-                                                   wavelength_weight, static))
+                    terms.append(self._shadow_term(scene, sensor, csg, static, camera, source, sampler, spp,
+                                                   wavelengths, wavelength_weight))
         terms = [term for term in terms if term is not None]
         if not terms:
             return None
@@ -178,19 +180,18 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         film.put_block(block)
         return film.develop()
 
-    def _sample_curves(self, scene, csg, viewpoint, sampler, scale=None, view=None):
-        """Points on the curves of the scene's csg shapes as seen from `viewpoint` (the camera,
-        or a light), sampled in proportion to their length over their distance: (x attached to
-        the shapes' parameters, dx/du, valid, kind, pmf, leaf a, solid), or None where there are
-        no curves. `scale`: the length the visibility test's offsets are fractions of (default:
-        the distance to the viewpoint; a directional light's stand-in point is far away).
-        `view`: the viewpoint per lane (a point sampled on an area light), where `viewpoint`
-        only sets the sampling weights."""
-        curves = [csg_edges.Curves(shape, viewpoint) for shape in csg.csg]
+    def _sample_curves(self, scene, csg, curves, viewpoint, sampler, scale=None, view=None):
+        """Points on the curves of the scene's csg shapes (`curves`, a `csg_edges.Curves` per
+        shape) as seen from `viewpoint` (the camera, or a light), sampled in proportion to
+        their length over their distance: (x attached to the shapes' parameters, dx/du, valid,
+        kind, pmf, leaf a, solid), or None where there are no curves. `scale`: the length the
+        visibility test's offsets are fractions of (default: the distance to the viewpoint; a
+        directional light's stand-in point is far away). `view`: the viewpoint per lane (a
+        point sampled on an area light), where `viewpoint` only sets the sampling weights."""
         if not sum(c.count for c in curves):
             return None
         shape_of = np.concatenate([np.full(c.count, s, np.uint32) for s, c in enumerate(curves)])
-        weights = np.concatenate([c.weight for c in curves])
+        weights = np.concatenate([c.weight(viewpoint) for c in curves])
         data = np.concatenate([c.data for c in curves])
         distribution = mi.DiscreteDistribution(mi.Float(weights.astype(np.float32)))
         with dr.suspend_grad():
@@ -202,7 +203,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         solid = dr.gather(mi.UInt32, mi.UInt32(shape_of), index)
         data = [dr.gather(mi.Float, mi.Float(np.ascontiguousarray(data[:, k])), index) for k in range(data.shape[1])]
         if view is None:
-            view = mi.Point3f(*[float(c) for c in viewpoint])
+            view = _point(viewpoint)
 
         # The leaves' matrices, attached to each shape's primitive_to_world.
         m_a, t_a, m_b, t_b = mi.Matrix3f(0), mi.Vector3f(0), mi.Matrix3f(0), mi.Vector3f(0)
@@ -214,17 +215,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             m_b, t_b = dr.select(mine, mb, m_b), dr.select(mine, tb, t_b)
         x, dx, valid = csg_edges.evaluate(kind, extra, m_a, t_a, m_b, t_b, data, view, u)
         with dr.suspend_grad():
-            # Only a point seen from the viewpoint: a hidden curve can pass near a visible
-            # discontinuity (a hole's sphere's contour just beneath the face runs along the
-            # rim, tangent to it where it meets the face), and rays either side of the hidden
-            # point would measure the jump across the visible one. Tested from just in front
-            # of the point, so that its own surfaces do not count.
-            x_d = dr.detach(x)
-            towards = view - x_d
-            distance = dr.norm(towards)
-            found, _ = _first_hit_past_own(scene, csg, x_d, towards / distance, (1.0 - OFFSET) * distance,
-                                           distance if scale is None else scale, _contour(kind), a, solid, valid)
-            valid &= ~found
+            valid &= _seen_from(scene, csg, dr.detach(x), view, scale, _contour(kind), a, solid, valid)
         return x, dx, valid, kind, pmf, a, solid
 
     def _difference(self, scene, sampler, camera, sensor, y, dy, pmf, valid, wavelengths, wavelength_weight, spp,
@@ -239,7 +230,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         term (the curve's motion normal to itself, Mitsuba's own sensor Jacobian). `radiance(target,
         active)`: what the camera sees through `target` (default: the integrator's estimate of
         all of it; a shadow's edge needs only the light that casts it)."""
-        cam = mi.Point3f(*[float(c) for c in camera])
+        cam = _point(camera)
         with dr.suspend_grad():
             y_d, dy_d = dr.detach(y), dr.detach(dy)
             speed = dr.norm(dy_d)
@@ -272,18 +263,19 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         # Moving the curve by v . n in the image replaces the outside radiance by the inside.
         return ds.uv, weight * dr.dot(y - y_d, normal), valid
 
-    def _primary_term(self, scene, sensor, csg, camera, sampler, spp, wavelengths, wavelength_weight):
+    def _primary_term(self, scene, sensor, csg, curves, camera, sampler, spp, wavelengths, wavelength_weight):
         """The curves the camera sees directly."""
-        sampled = self._sample_curves(scene, csg, camera, sampler)
+        sampled = self._sample_curves(scene, csg, curves, camera, sampler)
         if sampled is None:
             return None
         x, dx, valid, _, pmf, _, _ = sampled
         return self._difference(scene, sampler, camera, sensor, x, dx, pmf, valid, wavelengths, wavelength_weight,
                                 spp)
 
-    def _shadow_term(self, scene, sensor, csg, camera, source, sampler, spp, wavelengths, wavelength_weight,
-                     static=None):
-        """The shadows the curves cast from a light `source` (a point per lane, `_Source`): a
+    def _shadow_term(self, scene, sensor, csg, casters, camera, source, sampler, spp, wavelengths,
+                     wavelength_weight):
+        """The shadows the curves `casters` cast from a light `source` (a point per lane,
+        `_Source`): a
         curve point x the light's point l sees casts the edge of a shadow where the light's ray
         through x, continued, meets a surface (y0, normal n). Within that surface's tangent
         plane the edge is the curve's central projection from l, y = l + (x - l) ((y0 - l) .
@@ -297,16 +289,18 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         its direction, and its edges are parallel projections, y = x + d ((y0 - x) . n) /
         (d . n), d where its light travels.
 
-        `static`: the curves of Mitsuba's shapes (`csg_edges.StaticCurves`) cast instead, onto
-        csg shapes only (elsewhere their shadows stand still)."""
+        `casters`: the csg shapes' curves (a `csg_edges.Curves` per shape), or those of
+        Mitsuba's shapes (`csg_edges.StaticCurves`), which cast onto csg shapes only
+        (elsewhere their shadows stand still)."""
+        static = isinstance(casters, csg_edges.StaticCurves)
         parallel = source.away is not None
         size = float(np.linalg.norm(np.array(scene.bbox().extents())))
         lamp = source.lamp
         scale = size if parallel else None
-        if static is None:
-            sampled = self._sample_curves(scene, csg, source.viewpoint, sampler, scale, lamp)
+        if static:
+            sampled = _sample_static(scene, csg, casters, source.viewpoint, sampler, scale, lamp)
         else:
-            sampled = _sample_static(scene, csg, static, source.viewpoint, sampler, scale, lamp)
+            sampled = self._sample_curves(scene, csg, casters, source.viewpoint, sampler, scale, lamp)
         if sampled is None:
             return None
         x, dx, valid, kind, pmf, a, solid = sampled
@@ -314,7 +308,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             x_d, dx_d = dr.detach(x), dr.detach(dx)
             away = source.away if parallel else dr.normalize(x_d - lamp)
             found, start = _first_hit_past_own(scene, csg, x_d, away, dr.inf, size if parallel else dr.norm(x_d - lamp),
-                                               _contour(kind), a, solid, valid, static is not None)
+                                               _contour(kind), a, solid, valid, static)
             valid &= found
             ray = mi.Ray3f(x_d + start * away, away)
         with dr.resume_grad():
@@ -323,14 +317,14 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         with dr.suspend_grad():
             y0, n = dr.detach(y0_a), dr.detach(n_a)
             valid &= si.is_valid()
-            if static is not None:
+            if static:
                 valid &= on_csg
             reach = dr.dot(x_d - lamp, n)
             valid &= dr.abs(dr.dot(away, n)) > 1e-6
             # A camera ray to y0 that passes the casting point itself sees the shadow's edge
             # right behind the caster's own contour, which the primary term counts (a light at
             # the camera hides every shadow behind its caster): only edges clear of it count.
-            cam = mi.Point3f(*[float(c) for c in camera])
+            cam = _point(camera)
             towards = cam - y0
             closest = y0 + towards * (dr.dot(x_d - y0, towards) / dr.squared_norm(towards))
             valid &= dr.norm(x_d - closest) > SHADOW_GAP * dr.norm(x_d - cam)
@@ -339,8 +333,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             view_ray = mi.Ray3f(y0 + OFFSET * towards, towards / distance)
             view_ray.maxt = (1.0 - 2.0 * OFFSET) * distance
             valid &= ~csg.occluded(scene, view_ray, valid)
-            scale = 1.0 if parallel else dr.dot(y0 - lamp, n) / reach
-            dy = scale * (dx_d - away * (dr.dot(dx_d, n) / dr.dot(away, n)))
+            # the projection's magnification within the receiver's tangent plane
+            magnification = 1.0 if parallel else dr.dot(y0 - lamp, n) / reach
+            dy = magnification * (dx_d - away * (dr.dot(dx_d, n) / dr.dot(away, n)))
         if parallel:
             y = x + away * (dr.dot(y0_a - x, n_a) / dr.dot(away, n_a))
         else:
@@ -389,7 +384,7 @@ def _shadow_sources(scene, sampler, camera):
     size = max(float(np.linalg.norm(np.array(bbox.extents()))), 1e-3)
     far = FAR * size
     it = dr.zeros(mi.Interaction3f)
-    it.p = mi.Point3f(*[float(c) for c in centre])
+    it.p = _point(centre)
     sources = []
     for emitter in scene.emitters():
         flags = emitter.flags()
@@ -414,7 +409,7 @@ def _shadow_sources(scene, sampler, camera):
             elif mi.has_flag(flags, mi.EmitterFlags.Infinite):
                 ds, weight = emitter.sample_direction(it, sampler.next_2d())
                 weight = dr.select(ds.pdf > 0, weight, 0)
-                sources.append(_Source(centre + np.array([0.0, 0.0, far]), mi.Point3f(it.p) + ds.d * far, -ds.d,
+                sources.append(_Source(centre + np.array([0.0, 0.0, far]), it.p + ds.d * far, -ds.d,
                                        _infinite_incident(ds.d, weight)))
     return sources
 
@@ -509,13 +504,23 @@ def _sample_static(scene, csg, static, viewpoint, sampler, scale, view):
         data = [column(static.data[:, k]) for k in range(static.data.shape[1])]
         x, dx, valid = csg_edges.evaluate(kind, extra, m, t, m, t, data, view, u)
         valid &= dr.norm(dx) > 0
-        towards = view - x
-        distance = dr.norm(towards)
         none = dr.zeros(mi.UInt32, dr.width(x))
-        found, _ = _first_hit_past_own(scene, csg, x, towards / distance, (1.0 - OFFSET) * distance,
-                                       distance if scale is None else scale, mi.Bool(False), none, none, valid, True)
-        valid &= ~found
+        valid &= _seen_from(scene, csg, x, view, scale, mi.Bool(False), none, none, valid, mesh_edge=True)
     return x, dx, valid, kind, pmf, none, none
+
+
+def _seen_from(scene, csg, x, view, scale, contour, leaf, solid, active, mesh_edge=False):
+    """Whether nothing hides the curve points x from `view` (`_first_hit_past_own`, tested from
+    just in front of the point, so that its own surfaces do not count; `scale`: default its
+    distance). Only points seen count: a hidden curve can pass near a visible discontinuity
+    (a hole's sphere's contour just beneath the face runs along the rim, tangent to it where
+    it meets the face), and rays either side of the hidden point would measure the jump
+    across the visible one."""
+    towards = view - x
+    distance = dr.norm(towards)
+    found, _ = _first_hit_past_own(scene, csg, x, towards / distance, (1.0 - OFFSET) * distance,
+                                   distance if scale is None else scale, contour, leaf, solid, active, mesh_edge)
+    return ~found
 
 
 def _contour(kind):

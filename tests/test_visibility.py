@@ -191,7 +191,7 @@ def test_traced_curve_points_lie_on_both_surfaces():
     from mitsuba_csg.plugins import csg_edges
     sc = mi.load_dict({"type": "scene", "s": {"type": "csg", "model": csg.model_ref(CYLINDER_MINUS_SPHERE)}})
     shape = sc.shapes()[0]
-    curves = csg_edges.Curves(shape, np.array(CAMERA))
+    curves = csg_edges.Curves(shape)
     pair = np.flatnonzero(curves.kind == csg_edges.SURFACE_PAIR)
     assert len(pair) > 50
     u = mi.Float(np.random.default_rng(2).random(len(pair)).astype(np.float32))
@@ -270,7 +270,7 @@ def test_contour_points_and_length(solid, kind, surface):
     model = solid.rotate((1, 0.3, 0), 35).translate((0.2, -0.1, 0.3))
     sc = mi.load_dict({"type": "scene", "s": {"type": "csg", "model": csg.model_ref(model)}})
     shape = sc.shapes()[0]
-    curves = csg_edges.Curves(shape, np.array(CAMERA))
+    curves = csg_edges.Curves(shape)
     rows = np.flatnonzero(curves.kind == getattr(csg_edges, kind))
     assert len(rows) == 4
     n = 200_000
