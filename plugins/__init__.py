@@ -39,4 +39,6 @@ def register() -> None:
         mi.register_integrator("csg_prb", lambda props: prb_cls(props))
         mi.register_integrator("csg_prb_projective", lambda props: projective_cls(props))
     integrator_guard.install(mi)
+    for cls in (path_cls, aov_cls, volpath_cls):
+        integrator_guard.keep_binding(mi, cls)
     _registered_for.add(variant)

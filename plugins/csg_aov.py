@@ -4,6 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from . import integrator_guard
 from .csg_common import SceneCSG
 
 AOV_TYPES = {"depth": 1, "position": 3, "uv": 2, "dp_du": 3, "sh_normal": 3, "prim_index": 1, "shape_index": 1}
@@ -65,6 +66,8 @@ class CSGAOVIntegrator(mi.SamplingIntegrator):
         return (self.inner.aov_names() if self.inner else []) + names
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
+        # This class keeps Mitsuba's render binding (integrator_guard.keep_binding): checked here.
+        integrator_guard.check(mi, self, scene)
         csg = SceneCSG(scene)
         if self.inner is not None:
             color, valid, inner_aovs = self.inner.sample(scene, sampler, ray, medium, active)

@@ -6,6 +6,7 @@ import mitsuba as mi
 
 from mitsuba.ad.integrators.common import mis_weight
 
+from . import integrator_guard
 from .csg_common import SceneCSG, camera_ray_valid, read_depths, read_hide_emitters
 
 
@@ -63,6 +64,8 @@ class CSGVolpathIntegrator(mi.SamplingIntegrator):
                medium: mi.Medium = None, active: bool = True):
         if dr.hint(self.max_depth == 0, mode="scalar"):
             return mi.Spectrum(0), dr.zeros(mi.Bool, dr.width(ray.d)), []
+        # This class keeps Mitsuba's render binding (integrator_guard.keep_binding): checked here.
+        integrator_guard.check(mi, self, scene)
         csg = SceneCSG(scene, media=True)
         ray = mi.Ray3f(dr.detach(ray))
         L = mi.Spectrum(0)

@@ -13,10 +13,20 @@ Integrators that trace CSG declare it with a class attribute `traces_csg = True`
 nests another (`csg_aov`'s colour) is checked for its nested integrator too. A `csg` shape in
 a shape group (instancing) is refused for every integrator: the group's own acceleration
 structure holds Mitsuba's shapes only, so its copies would be invisible.
+
+Ctrl-C: Mitsuba's `Integrator.render` binding installs its own SIGINT handler for the render
+and puts back the one it found, kept in a single static slot. A Python wrapper on the base
+class looks, to the trampoline of a Python integrator, like an override, so such a render
+re-enters the binding, the inner call overwrites that slot, and Mitsuba's handler stays
+installed afterwards: the next Ctrl-C cancels a finished render and never reaches Python.
+Our own `SamplingIntegrator` plugins therefore keep the unwrapped binding (`keep_binding`,
+and they check in `sample`), and for other Python integrators the outermost wrapper puts
+Python's handler back once such a nested call has happened.
 """
 from __future__ import annotations
 
 import functools
+import signal
 import threading
 
 from mitsuba_csg.errors import CSGError
@@ -112,14 +122,36 @@ def check(mi, integrator, scene) -> None:
 _checked = threading.local()
 
 
+# Wrapped render calls in progress on this thread, and whether one of them re-entered
+# Mitsuba's render binding (see the module's docstring).
+_calls = threading.local()
+
+
 def _guarded(mi, method):
     @functools.wraps(method)
     def render(self, scene, *args, **kwargs):
         if getattr(_checked, "pair", None) != (id(self), id(scene)):
             check(mi, self, scene)
-        return method(self, scene, *args, **kwargs)
+        depth = getattr(_calls, "depth", 0)
+        _calls.nested = depth > 0
+        _calls.depth = depth + 1
+        try:
+            return method(self, scene, *args, **kwargs)
+        finally:
+            _calls.depth = depth
+            if depth == 0 and _calls.nested:
+                _restore_python_sigint()
     render._csg_guard = True
     return render
+
+
+def _restore_python_sigint() -> None:
+    """Reinstall Python's own SIGINT handler (only the main thread may; elsewhere Ctrl-C does
+    not reach Python code anyway)."""
+    if threading.current_thread() is threading.main_thread():
+        handler = signal.getsignal(signal.SIGINT)
+        if handler is not None:
+            signal.signal(signal.SIGINT, handler)
 
 
 def _guarded_render_function(mi, render):
@@ -153,3 +185,12 @@ def install(mi) -> None:
         if method is None or getattr(method, "_csg_guard", False):
             continue
         setattr(cls, name, _guarded(mi, method))
+
+
+def keep_binding(mi, cls) -> None:
+    """Give a Python `SamplingIntegrator` subclass Mitsuba's own `render` binding, so its
+    trampoline sees no override and Mitsuba's Ctrl-C handling works as for its own integrators.
+    Such a class calls `check` itself (in `sample`)."""
+    if "render" not in cls.__dict__:
+        method = mi.Integrator.__dict__["render"]
+        cls.render = getattr(method, "__wrapped__", method)

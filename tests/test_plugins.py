@@ -773,6 +773,43 @@ def test_a_nested_integrator_that_cannot_see_csg_is_refused():
     aov = mi.load_dict({"type": "csg_aov", "aovs": "d:depth", "inner": {"type": "path"}})
     with pytest.raises(csg.CSGError, match="nested PathIntegrator integrator cannot see"):
         mi.render(scene, integrator=aov)
+    with pytest.raises(csg.CSGError, match="nested PathIntegrator integrator cannot see"):
+        aov.render(scene, scene.sensors()[0])
+
+
+class _PythonIntegrator(mi.SamplingIntegrator):
+    """A user's own integrator written in Python (no csg shapes): white where a ray hits."""
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        hit = scene.ray_intersect(ray, active).is_valid()
+        return mi.Spectrum(dr.select(hit, 1.0, 0.0)), hit, []
+
+
+@pytest.mark.parametrize("name", ["csg_path", "csg_aov", "csg_volpath", "csg_prb", "python"])
+def test_ctrl_c_after_a_render_reaches_python(name):
+    """Mitsuba's render binding swaps in its own SIGINT handler for the render; after a render
+    (any csg_* integrator, or a user's Python one, which our render guard wraps) Python's own
+    handler is back: the next Ctrl-C reaches it instead of cancelling the finished render."""
+    import os
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signal handlers are set from the main thread only")
+    integrator = _PythonIntegrator(mi.Properties()) if name == "python" else mi.load_dict({"type": name})
+    scene = mi.load_dict({"type": "scene", "ball": {"type": "sphere"}, "sky": {"type": "constant"},
+                          "sensor": {"type": "perspective", "to_world": mi.ScalarTransform4f().look_at([0, 0, 5], [0, 0, 0], [0, 1, 0]),
+                                     "film": {"type": "hdrfilm", "width": 8, "height": 6}}})
+    seen = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: seen.append(signum))
+    try:
+        image = np.array(mi.render(scene, integrator=integrator, spp=1))
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(100):                    # Python runs its handlers between bytecodes
+            if seen:
+                break
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert seen == [signal.SIGINT]
+    assert image.shape[:2] == (6, 8) and image.max() > 0
 
 
 @pytest.mark.parametrize("integrator, message", [("csg_path", "csg shape 'ball' sits in a shapegroup"),
@@ -786,6 +823,8 @@ def test_instancing_a_csg_shape_is_refused(integrator, message):
                           "copy": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"}}})
     with pytest.raises(csg.CSGError, match=message):
         mi.render(scene)
+    with pytest.raises(csg.CSGError, match=message):
+        scene.integrator().render(scene, scene.sensors()[0])
 
 
 def test_the_media_example_scene_renders_its_ink(tmp_path):
