@@ -44,14 +44,14 @@ from __future__ import annotations
 import drjit as dr
 
 from . import layout as K
-from .device import KernelTree, node_record, scene_rays
+from .device import KernelTree, node_with_child_boxes, scene_rays
 from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, INTERSECTION, LEAF, LOOP_CLOSER, MAX_SLOPE, MISS, NO_LEAF,
                      RET_CLOSER, RET_L, RET_L_ELSE_LOOP_R, RET_R, RET_R_ELSE_LOOP_L, UNION)
 from .leaf_events import box_span as _box_span
 from .leaf_events import complement_class as _complement_class
 from .leaf_events import next_event
 from .leaf_events import tie_window as _tie_window
-from .shapes import inverse_direction
+from .shapes import box_entry, inverse_direction
 
 # Events of different primitives closer than a tie window are one event for the state
 # tables (docs/accuracy.md). The window is TIE_TOLERANCE x (the scene's extent + the ray
@@ -141,7 +141,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         # (tests/test_drjit_workarounds.py).
 
         # The current node's record serves GoTo (children) and Classify (kind).
-        flags, node_left, node_right, _ = node_record(b, tree, node)
+        flags, node_left, node_right, box_l, box_r = node_with_child_boxes(b, tree, node)
         kind = K.flags_kind(flags)
 
         # ---- GoTo: one child of `node`, from t_start ----
@@ -192,8 +192,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
             right_first = dr.zeros(b.Bool, n)
         # Both children's boxes, and what the node's flags say of them (a leaf, a set, co-bounded).
         bits_l, bits_r = K.flags_children(flags)
-        near_l, far_l = _box_span(b, tree, node_left, o, inv_d, going)
-        near_r, far_r = _box_span(b, tree, node_right, o, inv_d, going)
+        near_l, far_l = box_entry(*box_l, o, inv_d)
+        near_r, far_r = box_entry(*box_r, o, inv_d)
         swapped = dr.select(fresh_left, right_first, swapped)
         single = dr.zeros(b.Bool, n)       # the node is its child in register L
         vacant = dr.zeros(b.Bool, n)       # the node misses: no child needs searching
@@ -231,12 +231,13 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         # and where (unless the child takes this node's place).
         descend = in_box & ~child_is_leaf
         push = descend & ~single
-        hit_t.write(dr.select(fresh_left, t_start, dr.select(go_right, t_l, t_r)), sp, push)
-        hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, push)
-        hit_info.write(dr.select(go_right, info_l, info_r), sp, push)
-        frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R))
-                    | dr.select(swapped, SWAPPED_FRAME, 0) | (node << FRAME_NODE_SHIFT), sp, push)
-        bound.write(t_bound, sp, push)
+        if push:
+            hit_t.write(dr.select(fresh_left, t_start, dr.select(go_right, t_l, t_r)), sp, push)
+            hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, push)
+            hit_info.write(dr.select(go_right, info_l, info_r), sp, push)
+            frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R))
+                        | dr.select(swapped, SWAPPED_FRAME, 0) | (node << FRAME_NODE_SHIFT), sp, push)
+            bound.write(t_bound, sp, push)
         sp = dr.select(push, sp + 1, sp)
         node = dr.select(descend, child, node)
         t_bound = dr.select(push, child_bound, t_bound)
@@ -275,7 +276,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         table_op = dr.select(kind == UNION, 0, 1)
         if dr.hint(tree.has_groups, mode="scalar"):
             table_op = dr.select(group, K.GROUP_ROW, table_op)
-        action = dr.gather(b.UInt32, tree.table, table_op * 9 + cls_l * 3 + cls_r, classify)
+        row = dr.select(table_op == 0, K.TABLE_WORDS[0], dr.select(table_op == 1, K.TABLE_WORDS[1], K.TABLE_WORDS[2]))
+        action = (row >> (3 * (cls_l * 3 + cls_r))) & 7
         # Ties: a return needs its hit closer by more than the tie window, except
         # RET_CLOSER. Where an enter of one child meets an exit of the other within it
         # (touching or coincident faces, each computed in its own primitive's frame), the
@@ -335,21 +337,24 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         at_root = (state == RETURN) & (sp == 0)
         popping = (state == RETURN) & (sp > 0)
         sp = dr.select(popping, sp - 1, sp)
-        what = frame.read(sp, popping)
-        node = dr.select(popping, what >> FRAME_NODE_SHIFT, node)
-        swapped = dr.select(popping, (what & SWAPPED_FRAME) != 0, swapped)
-        what = what & (SWAPPED_FRAME - 1)
-        t_bound = dr.select(popping, bound.read(sp, popping), t_bound)
-        saved_t, saved_leaf, saved_info = hit_t.read(sp, popping), hit_leaf.read(sp, popping), hit_info.read(sp, popping)
-        load_l = popping & (what == LOAD_L)      # the hit is the right child's; reload the left
-        load_r = popping & (what == LOAD_R)      # the hit is the left child's; reload the right
-        save_l = popping & (what == SAVE_L)      # the hit is the left child's; now go right
-        t_start = dr.select(save_l, saved_t, t_start)
-        t_l, leaf_l, info_l = (dr.select(load_l, saved_t, t_l), dr.select(load_l, saved_leaf, leaf_l),
-                               dr.select(load_l, saved_info, info_l))
-        t_r, leaf_r, info_r = (dr.select(load_r, saved_t, t_r), dr.select(load_r, saved_leaf, leaf_r),
-                               dr.select(load_r, saved_info, info_r))
-        state = dr.select(at_root, DONE, dr.select(save_l, GOTO_R_FRESH, dr.select(popping, CLASSIFY, state)))
+        if popping:
+            what = frame.read(sp, popping)
+            node = dr.select(popping, what >> FRAME_NODE_SHIFT, node)
+            swapped = dr.select(popping, (what & SWAPPED_FRAME) != 0, swapped)
+            what = what & (SWAPPED_FRAME - 1)
+            t_bound = dr.select(popping, bound.read(sp, popping), t_bound)
+            saved_t, saved_leaf, saved_info = hit_t.read(sp, popping), hit_leaf.read(sp, popping), \
+                hit_info.read(sp, popping)
+            load_l = popping & (what == LOAD_L)      # the hit is the right child's; reload the left
+            load_r = popping & (what == LOAD_R)      # the hit is the left child's; reload the right
+            save_l = popping & (what == SAVE_L)      # the hit is the left child's; now go right
+            t_start = dr.select(save_l, saved_t, t_start)
+            t_l, leaf_l, info_l = (dr.select(load_l, saved_t, t_l), dr.select(load_l, saved_leaf, leaf_l),
+                                   dr.select(load_l, saved_info, info_l))
+            t_r, leaf_r, info_r = (dr.select(load_r, saved_t, t_r), dr.select(load_r, saved_leaf, leaf_r),
+                                   dr.select(load_r, saved_info, info_r))
+            state = dr.select(save_l, GOTO_R_FRESH, dr.select(popping, CLASSIFY, state))
+        state = dr.select(at_root, DONE, state)
 
     finished = state == DONE
     # A provisional hit at the root can only sit at tmax: nothing before it.

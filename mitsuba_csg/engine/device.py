@@ -57,11 +57,13 @@ class KernelTree:
     b: Backend
     node_record: object     # UInt32, 4 per node: flags, left child or primitive index, right child, parent
     node_box: object        # Float, 8 per node: lower xyz, 0, upper xyz, 0 (padded outwards; NaN if empty)
+    node_wide: object       # Float, 16 per node: its node_record words (as float bits), then an
+                            # operation's children's boxes (left lower, upper, right lower, upper; xyz):
+                            # one gather per visit where a traversal step tests both children
     prim_record: object     # Float, 16 per primitive (layout.PRIM_*)
     planes: object          # Float, 4 per plane (convex faces and mesh triangles)
     triangles: object       # Float, 12 per plane row (mesh triangles; zeros for convex planes)
     mesh_nodes: object      # Float, 8 per mesh BVH node (layout.MESH_NODE_FLOATS)
-    table: object           # UInt32 state tables, 27 entries (layout.TABLE_ARRAY: union, intersection, group)
     root: int
     root_wrapped: bool      # the root is a virtual union over a lone leaf or set
     stack_size: int
@@ -134,6 +136,11 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     flags = K.node_flags(kind.astype(np.uint32), neg.astype(np.uint32), order, left_high, group.astype(np.uint32),
                          sets.astype(np.uint32), children)
     node_record = np.stack([flags, left, np.where(right < 0, 0, right), np.where(parent < 0, 0, parent)], 1)
+    node_wide = np.zeros((len(kind), K.NODE_WIDE_FLOATS), np.float32)
+    node_wide[:, :4] = node_record.astype(np.uint32).view(np.float32)
+    for offset, child in ((4, left), (10, right)):
+        node_wide[ops, offset:offset + 3] = box[child[ops], 0:3]
+        node_wide[ops, offset + 3:offset + 6] = box[child[ops], 4:7]
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
     # world -> canonical after scene -> world (x = centre + x' / inv_scale)
     rows = flat.prim_to_canonical.copy()
@@ -161,10 +168,11 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         max_iterations = int(min(2**31 - 1, 64 + 8 * n_nodes * (height + 2)))
     return KernelTree(
         b=b, node_record=owned(b.UInt32, node_record.astype(np.uint32).ravel()),
-        node_box=owned(b.Float, box.astype(np.float32).ravel()), prim_record=owned(b.Float, prim_record.ravel()),
+        node_box=owned(b.Float, box.astype(np.float32).ravel()), node_wide=owned(b.Float, node_wide.ravel()),
+        prim_record=owned(b.Float, prim_record.ravel()),
         planes=owned(b.Float, planes.astype(np.float32).ravel()),
         triangles=owned(b.Float, triangles.astype(np.float32).ravel()),
-        mesh_nodes=owned(b.Float, mesh_nodes.ravel()), table=owned(b.UInt32, K.TABLE_ARRAY),
+        mesh_nodes=owned(b.Float, mesh_nodes.ravel()),
         root=int(root), root_wrapped=wrap, stack_size=stack_size_class(height), num_nodes=n_nodes,
         num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent,
         centre=tuple(float(c) for c in centre), inv_scale=float(inv_scale),
@@ -280,6 +288,15 @@ def gather_prim(b, tree, prim, active=True):
     word = dr.reinterpret_array(b.UInt32, rec[K.PRIM_COUNT_SHAPE])
     params = (rec[K.PRIM_PARAMS], rec[K.PRIM_PARAMS + 1])
     return rows, K.record_shape(word), params, start, K.record_plane_count(word)
+
+
+def node_with_child_boxes(b, tree, node, active=True):
+    """(flags, left or primitive, right, left child's box, right child's box) of nodes; a box is
+    (lower, upper) as Array3f, meaningful for operation nodes only."""
+    rec = dr.gather(b.module.ArrayXf, tree.node_wide, node, active, shape=(K.NODE_WIDE_FLOATS, dr.width(node)))
+    words = [dr.reinterpret_array(b.UInt32, rec[i]) for i in range(3)]
+    boxes = [(b.Array3f(rec[k], rec[k + 1], rec[k + 2]), b.Array3f(rec[k + 3], rec[k + 4], rec[k + 5])) for k in (4, 10)]
+    return words[0], words[1], words[2], boxes[0], boxes[1]
 
 
 def node_record(b, tree, node, active=True):

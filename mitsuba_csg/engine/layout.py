@@ -159,6 +159,7 @@ def with_class(info, cls, flip):
 
 # ---- Primitive record ----
 PRIM_RECORD_FLOATS = 16
+NODE_WIDE_FLOATS = 16      # engine.device.node_with_child_boxes
 PRIM_ROWS, PRIM_PARAMS, PRIM_PLANE_START, PRIM_COUNT_SHAPE = 0, 12, 14, 15
 SHAPE_SHIFT = 16
 PLANE_COUNT_MASK = 0xFFFF
@@ -206,7 +207,7 @@ def mesh_tris_count(ref):
     return ref & ((1 << MESH_COUNT_BITS) - 1)
 
 
-# ---- State tables (the automaton reads them; the upload puts them on the device) ----
+# ---- State tables (compiled into the automaton as constants, TABLE_WORDS) ----
 # Actions of the state tables.
 RET_L, RET_R, RET_CLOSER, RET_L_ELSE_LOOP_R, RET_R_ELSE_LOOP_L, LOOP_CLOSER, RET_MISS = range(7)
 _E, _X, _M = ENTER, EXIT, MISS
@@ -228,3 +229,6 @@ GROUP_ROW = 2
 TABLE_ARRAY = np.array([[table[(cl, cr)] for cl in range(3) for cr in range(3)]
                         for table in (STATE_TABLE[UNION], STATE_TABLE[INTERSECTION], GROUP_TABLE)],
                        dtype=np.uint32).ravel()
+# The same tables as one 32-bit word per row, 3 bits per action (entry cl * 3 + cr): the
+# automaton shifts its action out of a constant instead of gathering it from memory.
+TABLE_WORDS = tuple(int(sum(int(a) << (3 * i) for i, a in enumerate(row))) for row in TABLE_ARRAY.reshape(3, 9))

@@ -28,7 +28,7 @@ import drjit as dr
 
 from . import layout as K
 from . import shapes
-from .device import gather_prim, node_record
+from .device import gather_prim, node_with_child_boxes
 from .layout import ENTER, EXIT, FLIP_BIT, LEAF, MAX_SLOPE, MESH, MISS, NO_LEAF, QUADRIC, TORUS
 
 _NO_NODE = 0xFFFFFFFF
@@ -105,7 +105,7 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
     while dr.hint(~done, label="csg_set_walk"):
         iterations += 1
         has_node = node != _NO_NODE
-        flags, left, right, _ = node_record(b, tree, node, has_node)
+        flags, left, right, box_l, box_r = node_with_child_boxes(b, tree, node, has_node)
         is_leaf = has_node & (K.flags_kind(flags) == LEAF)
 
         # ---- A member: its first event after from_t ----
@@ -142,8 +142,8 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
         cull = dr.minimum(en_t, limit)
         expanding = has_node & ~is_leaf
         if expanding:
-            near_l, far_l = box_span(b, tree, left, o, inv_d, expanding)
-            near_r, far_r = box_span(b, tree, right, o, inv_d, expanding)
+            near_l, far_l = shapes.box_entry(*box_l, o, inv_d)
+            near_r, far_r = shapes.box_entry(*box_r, o, inv_d)
             reach_l = (near_l <= far_l) & (far_l >= t_c)
             reach_r = (near_r <= far_r) & (far_r >= t_c)
             culled |= expanding & ((reach_l & (near_l > limit)) | (reach_r & (near_r > limit)))
