@@ -131,6 +131,52 @@ def test_unions_of_many_leaves_agree_with_reference(model, seed, form, traversal
     compare(model, trace(model, o, d, form, traversal), o, d)
 
 
+@given(model=unions_of_leaves(), optimize=st.booleans())
+def test_wide_set_nodes_hold_each_member_once_with_its_box(model, optimize):
+    """The set walk's 4-wide nodes (engine.device): from each set's root they reach every leaf
+    under it exactly once, each child's box is that child's own node box, and the deepest run
+    of waiting entries (a visit pushes all the children it opens but one) fits the walk's stack."""
+    from mitsuba_csg.engine import layout as K
+    tree = csg.prepare(model, optimize=optimize).tree
+    record = tree.node_record.numpy().reshape(-1, 4)
+    boxes = tree.node_box.numpy().reshape(-1, 8)
+    wide = tree.set_nodes.numpy().reshape(-1, K.SET_NODE_FLOATS)
+    refs = wide[:, :4].view(np.uint32)
+    entry = tree.walk_entry.numpy()
+    kinds = K.flags_kind(record[:, 0])
+
+    def leaves_under(node):
+        found, todo = [], [node]
+        while todo:
+            n = todo.pop()
+            if kinds[n] == K.LEAF:
+                found.append(n)
+            else:
+                todo += [record[n, 1], record[n, 2]]
+        return sorted(found)
+
+    roots = np.flatnonzero(entry & K.SET_NODE_TAG)
+    assert (entry[entry & K.SET_NODE_TAG == 0] == np.flatnonzero(entry & K.SET_NODE_TAG == 0)).all()
+    for root in roots:
+        found, deepest, todo = [], 0, [(int(entry[root] & (K.SET_NODE_TAG - 1)), 0)]
+        while todo:
+            index, waiting = todo.pop()
+            children = [(j, int(r)) for j, r in enumerate(refs[index]) if r != 0xFFFFFFFF]
+            assert 2 <= len(children) <= 4
+            assert np.isnan(wide[index, 4 + 6 * len(children):28]).all()       # empty slots never open
+            waiting += len(children) - 1
+            deepest = max(deepest, waiting)
+            for j, r in children:
+                if r & K.SET_NODE_TAG:
+                    todo.append((r & (K.SET_NODE_TAG - 1), waiting))
+                else:
+                    found.append(r)
+                    child_box = np.concatenate([boxes[r, 0:3], boxes[r, 4:7]])
+                    np.testing.assert_array_equal(wide[index, 4 + 6 * j:10 + 6 * j], child_box)
+        assert sorted(found) == leaves_under(root)
+        assert deepest < tree.walk_stack_size
+
+
 @pytest.mark.parametrize("traversal", ["default", "no_sets"])
 @given(model=stacked_columns(), seed=st.integers(0, 2**31))
 def test_towers_of_touching_columns_have_no_inner_faces(model, seed, traversal):

@@ -60,6 +60,12 @@ class KernelTree:
     node_wide: object       # Float, 16 per node: its node_record words (as float bits), then an
                             # operation's children's boxes (left lower, upper, right lower, upper; xyz):
                             # one gather per visit where a traversal step tests both children
+    set_nodes: object       # Float, 32 per 4-wide node of the sets (engine.leaf_events): four child refs
+                            # (UInt32 bits: a leaf's node id, or SET_NODE_TAG | a 4-wide node), then
+                            # their boxes (lower xyz, upper xyz each; NaN for an empty slot)
+    walk_entry: object      # UInt32 per node: where a set walk from it starts (its 4-wide root, or
+                            # the node itself for a leaf)
+    walk_stack_size: int    # per-lane entries of the set walk's stack (a size class, as stack_size)
     prim_record: object     # Float, 16 per primitive (layout.PRIM_*)
     planes: object          # Float, 4 per plane (convex faces and mesh triangles)
     triangles: object       # Float, 12 per plane row (mesh triangles; zeros for convex planes)
@@ -141,6 +147,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     for offset, child in ((4, left), (10, right)):
         node_wide[ops, offset:offset + 3] = box[child[ops], 0:3]
         node_wide[ops, offset + 3:offset + 6] = box[child[ops], 4:7]
+    set_nodes, walk_entry, pending = _wide_sets(sets, kind, left, right, lower, upper, box)
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
     # world -> canonical after scene -> world (x = centre + x' / inv_scale)
     rows = flat.prim_to_canonical.copy()
@@ -169,6 +176,8 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     return KernelTree(
         b=b, node_record=owned(b.UInt32, node_record.astype(np.uint32).ravel()),
         node_box=owned(b.Float, box.astype(np.float32).ravel()), node_wide=owned(b.Float, node_wide.ravel()),
+        set_nodes=owned(b.Float, set_nodes.ravel()), walk_entry=owned(b.UInt32, walk_entry),
+        walk_stack_size=max(stack_size_class(height), stack_size_class(pending + 1)),
         prim_record=owned(b.Float, prim_record.ravel()),
         planes=owned(b.Float, planes.astype(np.float32).ravel()),
         triangles=owned(b.Float, triangles.astype(np.float32).ravel()),
@@ -274,6 +283,53 @@ def _set_roots(kind, neg, group, left, right, parent, height):
     return pure & (kind != K.LEAF) & ~parent_pure
 
 
+def _wide_sets(sets, kind, left, right, lower, upper, box) -> tuple[np.ndarray, np.ndarray, int]:
+    """Each set's binary subtree collapsed into 4-wide nodes for the set walk (fewer, wider
+    visits: a node's four boxes are tested in one step from one record). A node takes its two
+    children, then repeatedly replaces its inner child of largest box area by that child's two
+    children, up to four. Returns the records (layout.SET_NODE_FLOATS each), the walk entry of
+    every node, and the most entries the walk's stack can hold at once."""
+    walk_entry = np.arange(len(kind), dtype=np.uint32)
+    extent = np.nan_to_num(upper - lower, nan=0.0, posinf=1e30, neginf=0.0).clip(0.0, 1e30)
+    area = extent[:, 0] * extent[:, 1] + extent[:, 1] * extent[:, 2] + extent[:, 2] * extent[:, 0]
+    slots, id_of = [], {}                 # per 4-wide node: its children (tree node ids)
+    for root in np.flatnonzero(sets):
+        todo = [int(root)]
+        while todo:
+            node = todo.pop()
+            id_of[node] = len(slots)
+            children = [int(left[node]), int(right[node])]
+            while len(children) < 4:
+                inner = [c for c in children if kind[c] != K.LEAF]
+                if not inner:
+                    break
+                widest = max(inner, key=lambda c: area[c])
+                at = children.index(widest)
+                children[at:at + 1] = [int(left[widest]), int(right[widest])]
+            slots.append(children)
+            todo.extend(c for c in children if kind[c] != K.LEAF)
+        walk_entry[root] = K.SET_NODE_TAG | id_of[int(root)]
+    count = max(len(slots), 1)
+    refs = np.full((count, 4), 0xFFFFFFFF, np.uint32)
+    boxes = np.full((count, 4, 6), np.nan, np.float32)
+    for index, children in enumerate(slots):
+        for j, c in enumerate(children):
+            refs[index, j] = K.SET_NODE_TAG | id_of[c] if kind[c] != K.LEAF else c
+            boxes[index, j, :3] = box[c, 0:3]
+            boxes[index, j, 3:] = box[c, 4:7]
+    # A visit pushes all but one of the children it opens, and goes on into one of them: the
+    # most entries waiting at once is the largest sum of (children - 1) down a path. Children
+    # get larger ids than their parent, so one backward pass sees them first.
+    pending = np.zeros(count, np.int64)
+    for index in range(len(slots) - 1, -1, -1):
+        below = [pending[id_of[c]] for c in slots[index] if kind[c] != K.LEAF]
+        pending[index] = len(slots[index]) - 1 + max(below, default=0)
+    records = np.zeros((count, K.SET_NODE_FLOATS), np.float32)
+    records[:, :4] = refs.view(np.float32)
+    records[:, 4:28] = boxes.reshape(-1, 24)
+    return records, walk_entry, int(pending.max(initial=0))
+
+
 def stack_size_class(height: int) -> int:
     """Per-lane stack entries for a tree of `height`, rounded up to a power of two (at least 8):
     the size is compiled into the kernel, so models of similar height share one kernel."""
@@ -297,6 +353,15 @@ def node_with_child_boxes(b, tree, node, active=True):
     words = [dr.reinterpret_array(b.UInt32, rec[i]) for i in range(3)]
     boxes = [(b.Array3f(rec[k], rec[k + 1], rec[k + 2]), b.Array3f(rec[k + 3], rec[k + 4], rec[k + 5])) for k in (4, 10)]
     return words[0], words[1], words[2], boxes[0], boxes[1]
+
+
+def set_node(b, tree, index, active=True):
+    """(four child refs, four child boxes as (lower, upper) Array3f) of 4-wide set nodes."""
+    rec = dr.gather(b.module.ArrayXf, tree.set_nodes, index, active, shape=(K.SET_NODE_FLOATS, dr.width(index)))
+    refs = tuple(dr.reinterpret_array(b.UInt32, rec[i]) for i in range(4))
+    boxes = tuple((b.Array3f(rec[k], rec[k + 1], rec[k + 2]), b.Array3f(rec[k + 3], rec[k + 4], rec[k + 5]))
+                  for k in range(4, 28, 6))
+    return refs, boxes
 
 
 def node_record(b, tree, node, active=True):

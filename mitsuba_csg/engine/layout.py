@@ -160,6 +160,8 @@ def with_class(info, cls, flip):
 # ---- Primitive record ----
 PRIM_RECORD_FLOATS = 16
 NODE_WIDE_FLOATS = 16      # engine.device.node_with_child_boxes
+SET_NODE_FLOATS = 32       # engine.device: a 4-wide node of a set
+SET_NODE_TAG = 1 << 31     # a set walk's reference to a 4-wide node (else a leaf's node id)
 PRIM_ROWS, PRIM_PARAMS, PRIM_PLANE_START, PRIM_COUNT_SHAPE = 0, 12, 14, 15
 SHAPE_SHIFT = 16
 PLANE_COUNT_MASK = 0xFFFF

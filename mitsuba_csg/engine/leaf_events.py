@@ -4,7 +4,9 @@ The automaton (`engine.automaton`) asks every leaf for its first event after `t_
 subtree made only of unions of positive leaves (the Cheese's holes, a city block's
 windows) is a *set* (`layout.SET_BIT` on its root): instead of walking it with the state
 tables, which re-descend the looping child for every event, it is searched here as a BVH
-over its own node boxes, nearer child first, and a lone leaf is a set of one. The union:
+over its own node boxes, nearer children first, and a lone leaf is a set of one. The BVH is
+4-wide (`engine.device`: the set's binary subtree collapsed, four child boxes per record):
+half the visits of the binary one, each testing four boxes. The union:
 
 * is inside at t+ exactly where some member is: a member whose first event after t is an
   exit *contains* the point. Containing members' boxes hold the point, so culling boxes by
@@ -28,8 +30,8 @@ import drjit as dr
 
 from . import layout as K
 from . import shapes
-from .device import gather_prim, node_with_child_boxes
-from .layout import ENTER, EXIT, FLIP_BIT, LEAF, MAX_SLOPE, MESH, MISS, NO_LEAF, QUADRIC, TORUS
+from .device import gather_prim, node_record, set_node
+from .layout import ENTER, EXIT, FLIP_BIT, MAX_SLOPE, MESH, MISS, NO_LEAF, QUADRIC, TORUS
 
 _NO_NODE = 0xFFFFFFFF
 # Shapes whose inside along a ray may be several intervals.
@@ -79,12 +81,16 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
     bound (where it is < tmax): the state up to it. Lanes where `active` is false do nothing.
     """
     width = dr.width(t_start)
-    node = dr.select(active, root, _NO_NODE)
+    start_node = dr.gather(b.UInt32, tree.walk_entry, root, active)     # a set's 4-wide root, or the leaf
+    node = dr.select(active, start_node, _NO_NODE)
     t_c = b.Float(t_start)                       # this pass's start
     from_t = b.Float(t_start)                    # where the member at `node` is intersected from
     again = dr.zeros(b.Bool, width)              # `node` is a member re-intersected from its tie entry
-    stack_node = dr.alloc_local(b.UInt32, tree.stack_size)
-    stack_near = dr.alloc_local(b.Float, tree.stack_size)
+    stack_node = dr.alloc_local(b.UInt32, tree.walk_stack_size)
+    stack_near = dr.alloc_local(b.Float, tree.walk_stack_size)
+    # `sp < walk_stack_size` never stops a lane, but puts the size into the kernel's IR (see
+    # engine.automaton: Dr.Jit 1.5 leaves alloc_local sizes out of its kernel hash).
+    walk_stack_size = tree.walk_stack_size
     sp = dr.zeros(b.UInt32, width)
     en_t, en_leaf, en_info = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
         dr.full(b.UInt32, MISS, width)           # nearest entry of a member outside at t_c
@@ -102,16 +108,17 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
     done = ~b.Bool(active)
     iterations = dr.zeros(b.UInt32, width)
 
-    while dr.hint(~done, label="csg_set_walk"):
+    while dr.hint(~done & (sp < walk_stack_size), label="csg_set_walk"):
         iterations += 1
         has_node = node != _NO_NODE
-        flags, left, right, box_l, box_r = node_with_child_boxes(b, tree, node, has_node)
-        is_leaf = has_node & (K.flags_kind(flags) == LEAF)
+        wide = has_node & ((node & K.SET_NODE_TAG) != 0)
+        is_leaf = has_node & ~wide
 
         # ---- A member: its first event after from_t ----
         again_now = dr.zeros(b.Bool, width)
         if is_leaf:
-            t_m, info_m, odd_m = leaf_hit(b, tree, flags, left, o, d, from_t, tie)
+            flags, prim, _, _ = node_record(b, tree, node, is_leaf)
+            t_m, info_m, odd_m = leaf_hit(b, tree, flags, prim, o, d, from_t, tie)
             cls_m = K.info_class(info_m)
             # Once inside, the union's inside reaches at least `reach`: a member entered
             # before it (or within the tie window after it: a touching face) extends it. Its
@@ -134,26 +141,37 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
         again = again_now
         next_node = dr.select(again_now, node, _NO_NODE)
 
-        # ---- An inner node: open the children whose boxes the ray meets in [t_c, cull] ----
-        # Outside: up to the entry bound; inside: up to the reach and its tie window.
+        # ---- A 4-wide node: open the children whose boxes the ray meets in [t_c, cull] ----
+        # Outside: up to the entry bound; inside: up to the reach and its tie window. The
+        # nearest opened child is next; the others wait on the stack, nearer ones on top.
         joined = inside | (containing > 0)
         reach_window = dr.maximum(ex_t, t_c) + widest
         limit = dr.select(inside, reach_window, dr.select(joined, dr.maximum(entry_bound, reach_window), entry_bound))
         cull = dr.minimum(en_t, limit)
-        expanding = has_node & ~is_leaf
-        if expanding:
-            near_l, far_l = shapes.box_entry(*box_l, o, inv_d)
-            near_r, far_r = shapes.box_entry(*box_r, o, inv_d)
-            reach_l = (near_l <= far_l) & (far_l >= t_c)
-            reach_r = (near_r <= far_r) & (far_r >= t_c)
-            culled |= expanding & ((reach_l & (near_l > limit)) | (reach_r & (near_r > limit)))
-            hit_l, hit_r = reach_l & (near_l <= cull), reach_r & (near_r <= cull)
-            right_first = hit_r & (~hit_l | (near_r < near_l))
-            both = expanding & hit_l & hit_r
-            stack_node.write(dr.select(right_first, left, right), sp, both)
-            stack_near.write(dr.select(right_first, near_l, near_r), sp, both)
-            sp = dr.select(both, sp + 1, sp)
-            next_node = dr.select(expanding & (hit_l | hit_r), dr.select(right_first, right, left), next_node)
+        if wide:
+            refs, boxes = set_node(b, tree, node & (K.SET_NODE_TAG - 1), wide)
+            keys, opened = [], []
+            for ref, (lower, upper) in zip(refs, boxes):
+                near, far = shapes.box_entry(lower, upper, o, inv_d)
+                reach = (near <= far) & (far >= t_c)
+                culled |= wide & reach & (near > limit)
+                hit = reach & (near <= cull)
+                keys.append(dr.select(hit, near, dr.inf))
+                opened.append(hit)
+            refs = list(refs)
+            for i, j in ((0, 1), (2, 3), (0, 2), (1, 3), (1, 2)):     # sort by entry distance
+                swap = keys[j] < keys[i]
+                keys[i], keys[j] = dr.select(swap, keys[j], keys[i]), dr.select(swap, keys[i], keys[j])
+                refs[i], refs[j] = dr.select(swap, refs[j], refs[i]), dr.select(swap, refs[i], refs[j])
+                opened[i], opened[j] = opened[i] ^ (swap & (opened[i] ^ opened[j])), \
+                    opened[j] ^ (swap & (opened[i] ^ opened[j]))
+            for i in (3, 2, 1):
+                push = wide & opened[i]
+                if push:
+                    stack_node.write(refs[i], sp, push)
+                    stack_near.write(keys[i], sp, push)
+                    sp = dr.select(push, sp + 1, sp)
+            next_node = dr.select(wide & opened[0], refs[0], next_node)
 
         # ---- Nothing to do next: pop the nearest waiting box, unless it lies past cull ----
         pop = ~done & (next_node == _NO_NODE) & (sp > 0)
@@ -197,7 +215,7 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
                 dr.select(restart, ex_info, out_info)
             t_c = dr.select(restart, ex_t, t_c)
             from_t = dr.select(restart, ex_t, from_t)
-            node = dr.select(restart, root, node)
+            node = dr.select(restart, start_node, node)
             en_t, en_leaf, en_info = dr.select(restart, dr.inf, en_t), dr.select(restart, NO_LEAF, en_leaf), \
                 dr.select(restart, MISS, en_info)
             ex_t, ex_leaf, ex_info = dr.select(restart, -dr.inf, ex_t), dr.select(restart, NO_LEAF, ex_leaf), \
