@@ -47,7 +47,8 @@ def main():
                 f"Machine: {m['cpu']}, {m['cores']} cores, Mitsuba {m['mitsuba']}, Dr.Jit {m['drjit']}, "
                 f"variant `{m['variant']}`, {m['date']}. Command: "
                 "`./run.sh bench trace_throughput.py --scenes <scenes> --no-compile --repeats 2 --name table2` "
-                "(and `--name table2_large --no-path` for the two largest scenes); `--scenes paper` runs all "
+                "(and `--name table2_large --no-path` for the two largest scenes"
+                + (f", run {large['machine']['date']}" if large else "") + "); `--scenes paper` runs all "
                 "nine in one go (about half an hour here).", "",
                 f"1280x720 primary rays (one per pixel, no shading; traced in "
                 f"{'4x4 pixel tiles' if m.get('ray_order') == 'tiles' else 'image rows'}). "
@@ -156,10 +157,10 @@ def main():
         out.append("")
     if mesh:
         worst = max(mesh["rows"], key=lambda r: r["trace_ratio"])
-        steps = next((r["mean_steps"] for r in (mech or {}).get("rows", [])
-                      if r["scene"] == worst["scene"] and r["mechanisms"].startswith("all (")), None)
-        steps = steps or next((r["mean_steps"] for r in (t2 or {}).get("rows", [])
-                               if r["scene"] == worst["scene"] and r["tree"] == "+" and "mean_steps" in r), None)
+        steps = next((r["mean_steps"] for r in (t2 or {}).get("rows", [])
+                      if r["scene"] == worst["scene"] and r["tree"] == "+" and "mean_steps" in r), None)
+        steps = steps or next((r["mean_steps"] for r in (mech or {}).get("rows", [])
+                               if r["scene"] == worst["scene"] and r["mechanisms"].startswith("all (")), None)
         steps_text = f"{steps:.0f} steps per ray in {worst['scene']}" if steps else "many steps"
         best = min(mesh["rows"], key=lambda r: r["trace_ratio"])
         out += ["### Where the mesh route is faster, and why", "",
