@@ -286,48 +286,56 @@ def _set_roots(kind, neg, group, left, right, parent, height):
 def _wide_sets(sets, kind, left, right, lower, upper, box) -> tuple[np.ndarray, np.ndarray, int]:
     """Each set's binary subtree collapsed into 4-wide nodes for the set walk (fewer, wider
     visits: a node's four boxes are tested in one step from one record). A node takes its two
-    children, then repeatedly replaces its inner child of largest box area by that child's two
-    children, up to four. Returns the records (layout.SET_NODE_FLOATS each), the walk entry of
-    every node, and the most entries the walk's stack can hold at once."""
+    children, then twice splits its inner child of largest box area into that child's two
+    children (while it has one). Built level by level for all sets at once. Returns the records
+    (layout.SET_NODE_FLOATS each), the walk entry of every node, and the most entries the
+    walk's stack can hold at once."""
     walk_entry = np.arange(len(kind), dtype=np.uint32)
     extent = np.nan_to_num(upper - lower, nan=0.0, posinf=1e30, neginf=0.0).clip(0.0, 1e30)
     area = extent[:, 0] * extent[:, 1] + extent[:, 1] * extent[:, 2] + extent[:, 2] * extent[:, 0]
-    slots, id_of = [], {}                 # per 4-wide node: its children (tree node ids)
-    for root in np.flatnonzero(sets):
-        todo = [int(root)]
-        while todo:
-            node = todo.pop()
-            id_of[node] = len(slots)
-            children = [int(left[node]), int(right[node])]
-            while len(children) < 4:
-                inner = [c for c in children if kind[c] != K.LEAF]
-                if not inner:
-                    break
-                widest = max(inner, key=lambda c: area[c])
-                at = children.index(widest)
-                children[at:at + 1] = [int(left[widest]), int(right[widest])]
-            slots.append(children)
-            todo.extend(c for c in children if kind[c] != K.LEAF)
-        walk_entry[root] = K.SET_NODE_TAG | id_of[int(root)]
-    count = max(len(slots), 1)
-    refs = np.full((count, 4), 0xFFFFFFFF, np.uint32)
-    boxes = np.full((count, 4, 6), np.nan, np.float32)
-    for index, children in enumerate(slots):
-        for j, c in enumerate(children):
-            refs[index, j] = K.SET_NODE_TAG | id_of[c] if kind[c] != K.LEAF else c
-            boxes[index, j, :3] = box[c, 0:3]
-            boxes[index, j, 3:] = box[c, 4:7]
+    inner_node = kind != K.LEAF
+    id_of = np.full(len(kind), -1, np.int64)
+    levels = []                           # per level: its 4-wide nodes' children (tree ids, -1: none)
+    frontier, count = np.flatnonzero(sets), 0
+    while frontier.size:
+        id_of[frontier] = count + np.arange(frontier.size)
+        count += frontier.size
+        children = np.full((frontier.size, 4), -1, np.int64)
+        children[:, 0], children[:, 1] = left[frontier], right[frontier]
+        rows = np.arange(frontier.size)
+        for used in (2, 3):
+            candidates = children[:, :used]
+            splittable = (candidates >= 0) & inner_node[np.maximum(candidates, 0)]
+            widest = np.argmax(np.where(splittable, area[candidates], -1.0), axis=1)
+            split = splittable[rows, widest]
+            node = candidates[rows, widest]
+            children[split, widest[split]] = left[node[split]]
+            children[split, used] = right[node[split]]
+        levels.append(children)
+        present = children >= 0
+        frontier = children[present & inner_node[np.maximum(children, 0)]]
+    walk_entry[sets] = K.SET_NODE_TAG | id_of[sets].astype(np.uint32)
+    children = np.concatenate(levels) if levels else np.full((1, 4), -1, np.int64)
+    present = children >= 0
+    safe = np.maximum(children, 0)
+    wide = present & inner_node[safe]
+    refs = np.where(wide, K.SET_NODE_TAG | id_of[safe], np.where(present, children, 0xFFFFFFFF)).astype(np.uint32)
+    boxes = np.concatenate([box[safe][..., 0:3], box[safe][..., 4:7]], axis=-1).astype(np.float32)
+    boxes[~present] = np.nan
     # A visit pushes all but one of the children it opens, and goes on into one of them: the
-    # most entries waiting at once is the largest sum of (children - 1) down a path. Children
-    # get larger ids than their parent, so one backward pass sees them first.
-    pending = np.zeros(count, np.int64)
-    for index in range(len(slots) - 1, -1, -1):
-        below = [pending[id_of[c]] for c in slots[index] if kind[c] != K.LEAF]
-        pending[index] = len(slots[index]) - 1 + max(below, default=0)
-    records = np.zeros((count, K.SET_NODE_FLOATS), np.float32)
+    # most entries waiting at once is the largest sum of (children - 1) down a path. Deeper
+    # levels have larger ids, so one backward pass over the levels sees children first.
+    pending = np.zeros(len(children), np.int64)
+    start = count
+    for level in reversed(levels):
+        start -= len(level)
+        here = slice(start, start + len(level))
+        below = np.where(wide[here], pending[id_of[safe[here]]], 0).max(axis=1)
+        pending[here] = present[here].sum(axis=1) - 1 + below
+    records = np.zeros((len(children), K.SET_NODE_FLOATS), np.float32)
     records[:, :4] = refs.view(np.float32)
     records[:, 4:28] = boxes.reshape(-1, 24)
-    return records, walk_entry, int(pending.max(initial=0))
+    return records, walk_entry, int(pending.max(initial=0)) if levels else 0
 
 
 def stack_size_class(height: int) -> int:
