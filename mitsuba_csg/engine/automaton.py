@@ -44,7 +44,7 @@ from __future__ import annotations
 import drjit as dr
 
 from . import layout as K
-from .device import KernelTree, node_with_child_boxes, scene_rays
+from .device import KernelTree, Untraversed, node_with_child_boxes, scene_rays
 from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, INTERSECTION, LEAF, LOOP_CLOSER, MAX_SLOPE, MISS, NO_LEAF,
                      RET_CLOSER, RET_L, RET_L_ELSE_LOOP_R, RET_R, RET_R_ELSE_LOOP_L, UNION)
 from .leaf_events import box_span as _box_span
@@ -94,6 +94,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
     shadow rays it does not need, would otherwise be traced in full).
     """
     b = tree.b
+    tree = Untraversed(tree)
     # Every lane's registers must be full width, whichever input is widest: with a width-1
     # origin (a camera's rays share theirs) the loop state would be width 1, and Dr.Jit 1.5's
     # LLVM backend then mixes lanes' per-lane stacks (tests/test_drjit_workarounds.py).

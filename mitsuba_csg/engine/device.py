@@ -354,6 +354,20 @@ def gather_prim(b, tree, prim, active=True):
     return rows, K.record_shape(word), params, start, K.record_plane_count(word)
 
 
+class Untraversed:
+    """A KernelTree that Dr.Jit does not see into. A symbolic loop takes every local variable
+    its body reads as loop state, and a dataclass's arrays with it: the tree's buffers, which no
+    iteration changes, made Dr.Jit record each loop body a second time to drop them again.
+    Read through this wrapper, the buffers are inputs of the loop, not its state."""
+    __slots__ = ("_tree",)
+
+    def __init__(self, tree):
+        object.__setattr__(self, "_tree", tree._tree if isinstance(tree, Untraversed) else tree)
+
+    def __getattr__(self, name):
+        return getattr(self._tree, name)
+
+
 def node_with_child_boxes(b, tree, node, active=True):
     """(flags, left or primitive, right, left child's box, right child's box) of nodes; a box is
     (lower, upper) as Array3f, meaningful for operation nodes only."""

@@ -30,7 +30,7 @@ import drjit as dr
 
 from . import layout as K
 from . import shapes
-from .device import gather_prim, node_record, set_node
+from .device import Untraversed, gather_prim, node_record, set_node
 from .layout import ENTER, EXIT, FLIP_BIT, MAX_SLOPE, MESH, MISS, NO_LEAF, QUADRIC, TORUS
 
 _NO_NODE = 0xFFFFFFFF
@@ -81,6 +81,7 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
     bound (where it is < tmax): the state up to it. Lanes where `active` is false do nothing.
     """
     width = dr.width(t_start)
+    tree = Untraversed(tree)
     start_node = dr.gather(b.UInt32, tree.walk_entry, root, active)     # a set's 4-wide root, or the leaf
     node = dr.select(active, start_node, _NO_NODE)
     t_c = b.Float(t_start)                       # this pass's start
