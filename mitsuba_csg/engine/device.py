@@ -368,22 +368,25 @@ class Untraversed:
         return getattr(self._tree, name)
 
 
+def _box_pairs(b, rec, offsets):
+    """(lower, upper) Array3f boxes stored as six floats each at `offsets` of a gathered record."""
+    return tuple((b.Array3f(rec[k], rec[k + 1], rec[k + 2]), b.Array3f(rec[k + 3], rec[k + 4], rec[k + 5]))
+                 for k in offsets)
+
+
 def node_with_child_boxes(b, tree, node, active=True):
     """(flags, left or primitive, right, left child's box, right child's box) of nodes; a box is
     (lower, upper) as Array3f, meaningful for operation nodes only."""
     rec = dr.gather(b.module.ArrayXf, tree.node_wide, node, active, shape=(K.NODE_WIDE_FLOATS, dr.width(node)))
     words = [dr.reinterpret_array(b.UInt32, rec[i]) for i in range(3)]
-    boxes = [(b.Array3f(rec[k], rec[k + 1], rec[k + 2]), b.Array3f(rec[k + 3], rec[k + 4], rec[k + 5])) for k in (4, 10)]
-    return words[0], words[1], words[2], boxes[0], boxes[1]
+    return (*words, *_box_pairs(b, rec, (4, 10)))
 
 
 def set_node(b, tree, index, active=True):
     """(four child refs, four child boxes as (lower, upper) Array3f) of 4-wide set nodes."""
     rec = dr.gather(b.module.ArrayXf, tree.set_nodes, index, active, shape=(K.SET_NODE_FLOATS, dr.width(index)))
     refs = tuple(dr.reinterpret_array(b.UInt32, rec[i]) for i in range(4))
-    boxes = tuple((b.Array3f(rec[k], rec[k + 1], rec[k + 2]), b.Array3f(rec[k + 3], rec[k + 4], rec[k + 5]))
-                  for k in range(4, 28, 6))
-    return refs, boxes
+    return refs, _box_pairs(b, rec, range(4, 28, 6))
 
 
 def node_record(b, tree, node, active=True):
