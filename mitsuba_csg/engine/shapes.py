@@ -374,28 +374,56 @@ def _poly(coeffs, x):
     return acc
 
 
-def _bracketed_root(f, df, lo, hi, valid):
-    """Root of a monotone polynomial on [lo, hi] if its ends differ in sign, else (x, False).
+def _newton_step(f, df, x, lo, hi, lo_neg, done):
+    """One safeguarded Newton step on a bracket [lo, hi] of a monotone polynomial; a lane
+    that is done keeps its x."""
+    fx = _poly(f, x)
+    same_as_lo = (fx <= 0) == lo_neg
+    lo = dr.select(same_as_lo, x, lo)
+    hi = dr.select(same_as_lo, hi, x)
+    step = x - fx / _poly(df, x)
+    x_next = dr.select((step > lo) & (step < hi), step, 0.5 * (lo + hi))
+    done = done | (fx == 0) | (dr.abs(x_next - x) <= 2e-7 * (dr.abs(x) + 1e-3))
+    return dr.select(done, x, x_next), lo, hi, done
+
+
+@dr.syntax
+def _bracketed_roots(b, f, df, brackets, valid):
+    """[(x, has_root)] of a monotone polynomial on each bracket (lo, hi) whose ends differ in
+    sign; (midpoint, False) where they do not.
 
     Newton steps inside the bracket, bisection otherwise. Once a Newton step no longer moves
     x, x is frozen: at the float32 noise floor the sign of f is noise, and following it
-    would walk the bracket away from the root.
+    would walk the bracket away from the root. All brackets step together in one loop that
+    ends when every lane's roots are frozen (at most _TORUS_STEPS steps; most converge in a
+    few), so a packet whose lanes miss the torus, or converge early, does not pay for 16.
     """
-    f_lo, f_hi = _poly(f, lo), _poly(f, hi)
-    has_root = valid & (lo < hi) & ((f_lo <= 0) != (f_hi <= 0))
-    lo_neg = f_lo <= 0
-    x = 0.5 * (lo + hi)
-    done = ~has_root
-    for _ in range(_TORUS_STEPS):
-        fx = _poly(f, x)
-        same_as_lo = (fx <= 0) == lo_neg
-        lo = dr.select(same_as_lo, x, lo)
-        hi = dr.select(same_as_lo, hi, x)
-        step = x - fx / _poly(df, x)
-        x_next = dr.select((step > lo) & (step < hi), step, 0.5 * (lo + hi))
-        done |= (fx == 0) | (dr.abs(x_next - x) <= 2e-7 * (dr.abs(x) + 1e-3))
-        x = dr.select(done, x, x_next)
-    return x, has_root
+    has_roots, negs, xs, los, his, dones = [], [], [], [], [], []
+    for lo, hi in brackets:
+        f_lo, f_hi = _poly(f, lo), _poly(f, hi)
+        has_root = valid & (lo < hi) & ((f_lo <= 0) != (f_hi <= 0))
+        has_roots.append(has_root)
+        negs.append(f_lo <= 0)
+        xs.append(0.5 * (lo + hi))
+        los.append(b.Float(lo))
+        his.append(b.Float(hi))
+        dones.append(~has_root)
+    steps = dr.zeros(b.UInt32, dr.width(valid))
+    while dr.hint(_pending(dones) & (steps < _TORUS_STEPS), label="csg_torus_newton"):
+        stepped = [_newton_step(f, df, *state) for state in zip(xs, los, his, negs, dones)]
+        xs = [state[0] for state in stepped]
+        los = [state[1] for state in stepped]
+        his = [state[2] for state in stepped]
+        dones = [state[3] for state in stepped]
+        steps += 1
+    return list(zip(xs, has_roots))
+
+
+def _pending(dones):
+    pending = ~dones[0]
+    for done in dones[1:]:
+        pending |= ~done
+    return pending
 
 
 def _torus_events(b, o, d, param):
@@ -409,7 +437,13 @@ def _torus_events(b, o, d, param):
     m = dr.squared_norm(oc)
     reach2 = (1.0 + k) * (1.0 + k) - m
     reach = dr.sqrt(dr.maximum(reach2, 0.0)) * 1.001 + 1e-3   # ends strictly outside the torus
-    valid = reach2 > 0
+    # The torus lies in the slab |z| <= k: a ray that crosses the bounding sphere outside it
+    # has no root, and its lanes skip the root search (`_bracketed_roots`).
+    slab = k * 1.001 + 1e-3
+    z_lo, z_hi = (-slab - oc.z) / dn.z, (slab - oc.z) / dn.z
+    in_slab = dr.select(dn.z == 0, dr.abs(oc.z) <= slab,
+                        (dr.maximum(z_lo, z_hi) >= -reach) & (dr.minimum(z_lo, z_hi) <= reach))
+    valid = (reach2 > 0) & in_slab
     bb = dr.dot(oc, dn)
     e = m + 1.0 - k * k
     u = dn.x * dn.x + dn.y * dn.y
@@ -427,15 +461,12 @@ def _torus_events(b, o, d, param):
     s1 = dr.select(disc > 0, s1, -reach)
     s2 = dr.select(disc > 0, s2, -reach)
     # f' roots: split points of f (a missing root leaves a harmless empty piece).
-    splits = []
-    for lo, hi in ((-reach, s1), (s1, s2), (s2, reach)):
-        x, ok = _bracketed_root(df, ddf, lo, hi, valid)
-        splits.append(dr.select(ok, x, lo))
+    pieces = ((-reach, s1), (s1, s2), (s2, reach))
+    splits = [dr.select(ok, x, lo) for (x, ok), (lo, _) in zip(_bracketed_roots(b, df, ddf, pieces, valid), pieces)]
     ends = [-reach, *splits, reach]
+    pieces = [(lo, dr.maximum(lo, hi)) for lo, hi in zip(ends[:-1], ends[1:])]
     events, oks = [], []
-    for lo, hi in zip(ends[:-1], ends[1:]):
-        hi = dr.maximum(lo, hi)
-        x, ok = _bracketed_root(f, df, lo, hi, valid)
+    for (x, ok), (lo, hi) in zip(_bracketed_roots(b, f, df, pieces, valid), pieces):
         # One Newton step on the geometric form (rho - 1)^2 + z^2 - k^2, which float32
         # evaluates without the quartic's cancellation (its roots were off by ~1e-5 of the
         # distance), kept inside the root's bracket so that the roots stay in order.
