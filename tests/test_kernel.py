@@ -518,16 +518,24 @@ def test_a_second_model_of_the_same_size_class_compiles_no_kernel():
     rng = np.random.default_rng(0)
     o = np.column_stack([rng.uniform(-1, 1, (500, 2)), np.full(500, -5.0)])
     d = np.tile([0.0, 0.0, 1.0], (500, 1))
+    models = [csg.prepare(cheese(200, seed=1)), csg.prepare(cheese(260, seed=2))]
+    # The SAH shapes of these two sets need different walk stacks (15 and 16 waiting entries):
+    # both must still fall in one size class.
+    assert len({(p.tree.stack_size, p.tree.walk_stack_size) for p in models}) == 1
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
-        first = csg.trace(cheese(200, seed=1), o, d)
         dr.kernel_history()                                   # reading it clears it
-        second = csg.trace(cheese(260, seed=2), o, d)
-        compiled = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT and not k["cache_hit"]]
+        hits, kernels = [], []
+        for prepared in models:
+            hits.append(csg.trace(prepared, o, d))
+            kernels.append({k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT})
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert np.isfinite(first.t).any() and np.isfinite(second.t).any()
-    assert compiled == [], f"{len(compiled)} new kernels for the second cheese"
+    assert all(np.isfinite(h.t).any() for h in hits)
+    # Compared by hash, not by Dr.Jit's cache-hit flag: a kernel compiled by an earlier run
+    # and read from the disk cache counts as a hit, so the flag passes on a warm machine only.
+    new = kernels[1] - kernels[0]
+    assert not new, f"{len(new)} new kernels for the second cheese"
 
 
 def test_a_deeper_tree_after_a_shallow_one_gets_its_own_stacks():
