@@ -44,12 +44,12 @@ from __future__ import annotations
 import drjit as dr
 
 from . import layout as K
-from .device import KernelTree, Untraversed, node_with_child_boxes, scene_rays
+from .device import KernelTree, Untraversed, node_record, node_with_child_boxes, scene_rays
 from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, INTERSECTION, LEAF, LOOP_CLOSER, MAX_SLOPE, MISS, NO_LEAF,
                      RET_CLOSER, RET_L, RET_L_ELSE_LOOP_R, RET_R, RET_R_ELSE_LOOP_L, UNION)
 from .leaf_events import box_span as _box_span
 from .leaf_events import complement_class as _complement_class
-from .leaf_events import next_event
+from .leaf_events import leaf_hit, next_event
 from .leaf_events import tie_window as _tie_window
 from .shapes import box_entry, inverse_direction
 
@@ -250,9 +250,16 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
                            info_c)
         leaf_c = b.UInt32(child)
         searching = in_box & child_is_leaf
-        if searching:
+        # A lone leaf's next event is its first event after t_start, whatever the bounds
+        # (a set of one: no other member can take over), so it skips the set walk's loop.
+        lone = searching & ((child_bits & K.CHILD_LEAF) != 0)
+        if lone:
+            leaf_flags, prim, _, _ = node_record(b, tree, child, lone)
+            t_c, info_c, _ = leaf_hit(b, tree, leaf_flags, prim, o, d, t_start, tie)
+        walking = searching & ~lone
+        if walking:
             t_c, leaf_c, info_c, iterations = next_event(b, tree, child, o, d, inv_d, t_start, entry_bound,
-                                                         exit_bound, tmax, tie, searching)
+                                                         exit_bound, tmax, tie, walking)
             walked += iterations
         known = going & ~descend
         set_r, set_l = known & go_right, known & ~go_right

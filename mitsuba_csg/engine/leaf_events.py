@@ -4,7 +4,8 @@ The automaton (`engine.automaton`) asks every leaf for its first event after `t_
 subtree made only of unions of positive leaves (the Cheese's holes, a city block's
 windows) is a *set* (`layout.SET_BIT` on its root): instead of walking it with the state
 tables, which re-descend the looping child for every event, it is searched here as a BVH
-over its own node boxes, nearer children first, and a lone leaf is a set of one. The BVH is
+over its own node boxes, nearer children first. (A lone leaf is a set of one, whose next
+event is its own first event: the automaton intersects it without a walk.) The BVH is
 4-wide (`engine.device`: the set's binary subtree collapsed, four child boxes per record):
 half the visits of the binary one, each testing four boxes. The union:
 
@@ -99,7 +100,7 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
         dr.full(b.UInt32, MISS, width)           # farthest exit of the members inside (this pass's reach)
     containing = dr.zeros(b.UInt32, width)
     non_convex_inside = dr.zeros(b.Bool, width)
-    culled = dr.zeros(b.Bool, width)             # a box was not opened that may hold an entry that matters
+    culled = dr.full(b.Float, dr.inf, width)     # nearest box not opened that may hold an entry that matters
     inside = dr.zeros(b.Bool, width)             # an earlier pass ended inside, at out_*: the union's exit
     out_t, out_leaf, out_info = b.Float(ex_t), b.UInt32(ex_leaf), b.UInt32(ex_info)   # unless a member takes over
     res_t, res_leaf, res_info = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
@@ -147,7 +148,7 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
         # nearest opened child is next; the others wait on the stack, nearer ones on top.
         joined = inside | (containing > 0)
         reach_window = dr.maximum(ex_t, t_c) + widest
-        limit = dr.select(inside, reach_window, dr.select(joined, dr.maximum(entry_bound, reach_window), entry_bound))
+        limit = dr.select(joined, reach_window, entry_bound)
         cull = dr.minimum(en_t, limit)
         if wide:
             refs, boxes = set_node(b, tree, node & (K.SET_NODE_TAG - 1), wide)
@@ -155,7 +156,7 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
             for ref, (lower, upper) in zip(refs, boxes):
                 near, far = shapes.box_entry(lower, upper, o, inv_d)
                 reach = (near <= far) & (far >= t_c)
-                culled |= wide & reach & (near > limit)
+                culled = dr.minimum(culled, dr.select(wide & reach & (near > limit), near, dr.inf))
                 hit = reach & (near <= cull)
                 keys.append(dr.select(hit, near, dr.inf))
                 opened.append(hit)
@@ -179,7 +180,7 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
         top = dr.select(pop, sp - 1, 0)
         popped, popped_near = stack_node.read(top, pop), stack_near.read(top, pop)
         sp = dr.select(pop, sp - 1, sp)
-        culled |= pop & (popped_near > limit)
+        culled = dr.minimum(culled, dr.select(pop & (popped_near > limit), popped_near, dr.inf))
         next_node = dr.select(pop & (popped_near <= cull), popped, next_node)
         node = next_node
 
@@ -190,14 +191,14 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
             window = tie_window(b, tie, dr.minimum(K.info_slope(ex_info), K.info_slope(en_info)))
             # Another member may take over at the farthest exit: one entered before it (or may
             # have been, in a box not opened), or a second containing one that may re-enter.
-            take_over = (en_t <= ex_t + window) | ((containing > 1) & non_convex_inside) | culled
+            take_over = (en_t <= ex_t + window) | ((containing > 1) & non_convex_inside) | (culled <= ex_t + widest)
             # Past the exit bound the state is all that matters: inside up to the bound.
             unsure = found_inside & take_over & (ex_t >= exit_bound) & (exit_bound < tmax)
             chain = found_inside & ~unsure & dr.isfinite(ex_t) & take_over
             exit_now = found_inside & ~unsure & ~chain
             exit_before = ~found_inside & inside
-            entry = ~found_inside & ~inside & dr.isfinite(en_t) & ((en_t <= entry_bound) | ~culled)
-            outside_to_bound = ~found_inside & ~inside & ~entry & culled & (entry_bound < tmax)
+            entry = ~found_inside & ~inside & dr.isfinite(en_t) & ((en_t <= entry_bound) | (en_t <= culled))
+            outside_to_bound = ~found_inside & ~inside & ~entry & (culled < dr.inf) & (entry_bound < tmax)
             t_res = dr.select(unsure, exit_bound, dr.select(outside_to_bound, entry_bound, dr.select(
                 exit_now, ex_t, dr.select(exit_before, out_t, dr.select(entry, en_t, dr.inf)))))
             leaf_res = dr.select(exit_now, ex_leaf, dr.select(exit_before, out_leaf,
@@ -223,5 +224,5 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
                 dr.select(restart, MISS, ex_info)
             containing = dr.select(restart, 0, containing)
             non_convex_inside &= ~restart
-            culled &= ~restart
+            culled = dr.select(restart, dr.inf, culled)
     return res_t, res_leaf, res_info, iterations
