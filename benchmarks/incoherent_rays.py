@@ -9,8 +9,13 @@ Two batches per scene, seeded:
   with cosine-distributed upward directions, as the first bounce of a path tracer whose floor
   surrounds the model;
 - points: points uniform in the model's box, each with the one fixed direction of
-  `csg.contains` (a membership query per point).
-Rows give the fraction of rays that meet the model's box, mean steps per ray, the SIMD
+  `csg.contains` (a membership query per point);
+- surface: the benchmark camera's hits on the model (1280x720, trace_throughput.py's camera,
+  4x4 pixel tiles), each continued in a cosine-distributed direction about the hit's normal
+  from 1e-4 of the model's size off the surface: the first bounce of a path tracer off the
+  model itself (one ray per hit, up to --rays: fewer rays than the other batches).
+Rows give the fraction of rays that meet the model's box, mean steps per ray (and for the
+rays in the box, those that hit the model and those that leave it), the SIMD
 packet utilization of the batch as given (mean steps / mean of each 16-lane packet's maximum:
 how much of a packet's work is useful), seconds as given and reordered (the sort included),
 and Embree's seconds for the same rays on the mesh.
@@ -40,7 +45,30 @@ def batches(model, n, seed=1):
     radius, phi = np.sqrt(u1), 2 * np.pi * u2
     cosine = np.column_stack([radius * np.cos(phi), radius * np.sin(phi), np.sqrt(1 - u1)])
     points = rng.uniform(lo, hi, (n, 3))
-    return {"bounce": (ground, cosine), "points": (points, np.tile(_PROBE, (n, 1)))}
+    return {"bounce": (ground, cosine), "points": (points, np.tile(_PROBE, (n, 1))),
+            "surface": surface_bounces(model, rng, n)}
+
+
+def surface_bounces(model, rng, n):
+    """(origins, directions) of first bounces off the model: the benchmark camera's hits (the
+    first n), each with a cosine-distributed direction about the hit's normal."""
+    import mitsuba_csg as csg
+    from trace_throughput import rays_for
+    o, d = rays_for(model, 1280, 720)
+    hits = csg.trace(model, o, d)
+    found = np.flatnonzero(np.isfinite(hits.t))[:n]
+    normal = hits.normal[found]
+    lo, hi = (np.asarray(v, np.float64) for v in model.bounds())
+    origin = o[found] + hits.t[found, None] * d[found] + 1e-4 * float((hi - lo).max()) * normal
+    u1, u2 = rng.random(len(normal)), rng.random(len(normal))
+    radius, phi = np.sqrt(u1), 2 * np.pi * u2
+    helper = np.where(np.abs(normal[:, :1]) > 0.9, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
+    s = np.cross(normal, helper)
+    s /= np.linalg.norm(s, axis=1, keepdims=True)
+    t = np.cross(normal, s)
+    direction = (radius * np.cos(phi))[:, None] * s + (radius * np.sin(phi))[:, None] * t \
+        + np.sqrt(1 - u1)[:, None] * normal
+    return origin, direction
 
 
 def main(argv=None):
@@ -72,9 +100,12 @@ def main(argv=None):
                        for k in ("t", "prim", "steps"))
             steps = plain.steps.numpy().astype(np.float64)
             packets = steps[:len(steps) // PACKET * PACKET].reshape(-1, PACKET)
-            row = dict(scene=scene, batch=batch, rays=args.rays,
-                       box_fraction=float(np.mean(plain.steps.numpy() > 0)),
+            in_box, hit = steps > 0, np.isfinite(plain.t.numpy())
+            row = dict(scene=scene, batch=batch, rays=len(o),
+                       box_fraction=float(np.mean(in_box)),
                        mean_steps=float(steps.mean()), utilization=float(packets.mean() / packets.max(axis=1).mean()),
+                       steps_hit=float(steps[in_box & hit].mean()) if np.any(in_box & hit) else float("nan"),
+                       steps_leave=float(steps[in_box & ~hit].mean()) if np.any(in_box & ~hit) else float("nan"),
                        plain_s=plain_s, reorder_s=reorder_s, speedup=plain_s / reorder_s, identical=same)
             if mesh is not None:
                 row["embree_s"] = embree_primary(mesh, o, d, args.repeats)
@@ -82,11 +113,13 @@ def main(argv=None):
             rows.append(row)
             print(f"  {scene:14s} {batch:7s} as given {plain_s * 1e3:7.1f} ms  reordered {reorder_s * 1e3:7.1f} ms"
                   f"  ({row['speedup']:.2f}x)", flush=True)
-    columns = [("scene", "scene", "s"), ("batch", "batch", "s"), ("box_fraction", "rays in box", ".2f"),
-               ("mean_steps", "steps/ray", ".1f"), ("utilization", "SIMD use", ".2f"), ("plain_s", "as given s", ".3f"),
+    columns = [("scene", "scene", "s"), ("batch", "batch", "s"), ("rays", "rays", "d"),
+               ("box_fraction", "rays in box", ".2f"), ("mean_steps", "steps/ray", ".1f"),
+               ("steps_hit", "steps/ray hit", ".1f"), ("steps_leave", "steps/ray leave", ".1f"),
+               ("utilization", "SIMD use", ".2f"), ("plain_s", "as given s", ".3f"),
                ("reorder_s", "reordered s", ".3f"), ("speedup", "speed-up", ".2f"), ("embree_s", "Embree s", ".3f"),
                ("reorder_over_embree", "reordered/Embree", ".1f")]
-    print(f"{args.rays} rays per batch, {common.machine()['cpu']}, {common.machine()['variant']}")
+    print(f"{args.rays} rays per bounce / points batch, {common.machine()['cpu']}, {common.machine()['variant']}")
     print(common.table(rows, columns))
     if not all(r["identical"] for r in rows):
         raise SystemExit("reordered results differ from the rays traced as given")

@@ -21,7 +21,7 @@ def load(name):
 
 
 def fmt(v, spec):
-    return "-" if v is None else format(v, spec)
+    return "-" if v is None or v != v else format(v, spec)
 
 
 def by_scene(rows):
@@ -197,18 +197,25 @@ def main():
         m = incoherent["machine"]
         out += ["## Incoherent ray batches", "",
                 f"`./run.sh bench incoherent_rays.py` ({m['date']}, `{m['variant']}`): "
-                f"{incoherent['rows'][0]['rays']} rays per batch, traced as given and with "
+                "batches traced as given and with "
                 "`trace_rays(reorder=True)` (only the rays that meet the model's box, sorted by origin and "
                 "direction cell; the sort included), and by Embree on the manifold3d mesh. `bounce`: points "
                 "on the ground under the model with cosine-distributed upward directions; `points`: points "
-                "uniform in the model's box, each with the fixed direction of `csg.contains`. SIMD use is the "
+                "uniform in the model's box, each with the fixed direction of `csg.contains`; `surface`: the "
+                "benchmark camera's hits on the model, each continued in a cosine-distributed direction about "
+                "its normal (a path tracer's first bounce off the model). Steps per ray of the rays in the box "
+                "that hit the model and that leave it are given apart. SIMD use is the "
                 "mean steps over the mean of each 16-lane packet's largest, for the batch as given.", "",
-                "| scene | batch | rays in box | steps/ray | SIMD use | as given s | reordered s | speed-up | "
-                "Embree s | reordered / Embree |", "|---|---|---|---|---|---|---|---|---|---|"]
+                "| scene | batch | rays | rays in box | steps/ray | steps/ray hit / leave | SIMD use | as given s | "
+                "reordered s | speed-up | Embree s | as given / Embree | reordered / Embree |",
+                "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in incoherent["rows"]:
-            out.append(f"| {r['scene']} | {r['batch']} | {r['box_fraction']:.2f} | {r['mean_steps']:.1f} | "
+            given = r["plain_s"] / r["embree_s"] if r.get("embree_s") else None
+            out.append(f"| {r['scene']} | {r['batch']} | {r['rays']} | {r['box_fraction']:.2f} | "
+                       f"{r['mean_steps']:.1f} | {fmt(r.get('steps_hit'), '.1f')} / {fmt(r.get('steps_leave'), '.1f')} | "
                        f"{r['utilization']:.2f} | {r['plain_s']:.3f} | {r['reorder_s']:.3f} | {r['speedup']:.2f} | "
-                       f"{fmt(r.get('embree_s'), '.3f')} | {fmt(r.get('reorder_over_embree'), '.1f')} |")
+                       f"{fmt(r.get('embree_s'), '.3f')} | {fmt(given, '.1f')} | "
+                       f"{fmt(r.get('reorder_over_embree'), '.1f')} |")
         out.append("")
     several = load("several_shapes")
     if several:
