@@ -4,7 +4,7 @@ same rays through Embree on the manifold3d mesh, measured in one run.
     ./run.sh bench incoherent_rays.py [--scenes city-3385,cheese-1000] [--rays 921600]
                                       [--no-mesh] [--variant cuda_ad_rgb]
 
-Two batches per scene, seeded:
+Three batches per scene, seeded:
 - bounce: points on the ground plane under the model (a square twice the model's size across)
   with cosine-distributed upward directions, as the first bounce of a path tracer whose floor
   surrounds the model;
@@ -42,11 +42,16 @@ def batches(model, n, seed=1):
                               rng.uniform(centre[1] - size, centre[1] + size, n),
                               np.full(n, lo[2] + 1e-3 * size)])
     u1, u2 = rng.random(n), rng.random(n)
-    radius, phi = np.sqrt(u1), 2 * np.pi * u2
-    cosine = np.column_stack([radius * np.cos(phi), radius * np.sin(phi), np.sqrt(1 - u1)])
+    cosine = cosine_directions(u1, u2)
     points = rng.uniform(lo, hi, (n, 3))
     return {"bounce": (ground, cosine), "points": (points, np.tile(_PROBE, (n, 1))),
             "surface": surface_bounces(model, rng, n)}
+
+
+def cosine_directions(u1, u2):
+    """Cosine-distributed directions about +z from two uniform samples (Malley's method)."""
+    radius, phi = np.sqrt(u1), 2 * np.pi * u2
+    return np.column_stack([radius * np.cos(phi), radius * np.sin(phi), np.sqrt(1 - u1)])
 
 
 def surface_bounces(model, rng, n):
@@ -60,14 +65,12 @@ def surface_bounces(model, rng, n):
     normal = hits.normal[found]
     lo, hi = (np.asarray(v, np.float64) for v in model.bounds())
     origin = o[found] + hits.t[found, None] * d[found] + 1e-4 * float((hi - lo).max()) * normal
-    u1, u2 = rng.random(len(normal)), rng.random(len(normal))
-    radius, phi = np.sqrt(u1), 2 * np.pi * u2
+    local = cosine_directions(rng.random(len(normal)), rng.random(len(normal)))
     helper = np.where(np.abs(normal[:, :1]) > 0.9, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
     s = np.cross(normal, helper)
     s /= np.linalg.norm(s, axis=1, keepdims=True)
     t = np.cross(normal, s)
-    direction = (radius * np.cos(phi))[:, None] * s + (radius * np.sin(phi))[:, None] * t \
-        + np.sqrt(1 - u1)[:, None] * normal
+    direction = local[:, :1] * s + local[:, 1:2] * t + local[:, 2:] * normal
     return origin, direction
 
 
