@@ -50,7 +50,6 @@ from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, INTERSECTION, LEAF, LOOP
 from .leaf_events import box_span as _box_span
 from .leaf_events import complement_class as _complement_class
 from .leaf_events import leaf_hit, next_event
-from .leaf_events import resolved as _resolved
 from .leaf_events import tie_window as _tie_window
 from .shapes import box_entry, inverse_direction
 
@@ -104,7 +103,6 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
     tmin, tmax = tmin * k, tmax * k
     inv_d = inverse_direction(b, d)
     tie = _tie_tolerance(b, tree, o, d)
-    widest = _tie_window(b, tie, MAX_SLOPE)
 
     # ---- Loop state (all full width: a width-1 literal stack index misbehaved in Dr.Jit 1.5,
     #      see tests/test_drjit_workarounds.py) ----
@@ -177,7 +175,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
             # next event matters only where that state keeps the node's state (union and
             # difference: the second child inside, so its exit; intersection: outside, so its
             # entry). The other kind of event is searched only for ties (engine.leaf_events).
-            near_tie = t_l + widest
+            near_tie = t_l + _tie_window(b, tie, MAX_SLOPE)
             state_only = second & fixes
             wants_entry = kind == INTERSECTION
             entry_bound = dr.select(state_only & ~wants_entry, dr.minimum(child_bound, near_tie), child_bound)
@@ -294,11 +292,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
         # solid does not change there, so the tie loops instead of reporting a false boundary.
         l_closer = t_l <= t_r
         # The narrower of the two windows: a coincident pair meets the ray at one slope, and
-        # a steep event next to a grazing one is not widened by it. Events farther apart than
-        # the widest window need no slopes (leaf events leave them lazy).
-        close = classify & (dr.abs(t_l - t_r) <= widest)
-        info_l = _resolved(b, tree, leaf_l, t_l, info_l, o, d, close)
-        info_r = _resolved(b, tree, leaf_r, t_r, info_r, o, d, close)
+        # a steep event next to a grazing one is not widened by it.
         window = _tie_window(b, tie, dr.minimum(K.info_slope(info_l), K.info_slope(info_r)))
         apart = dr.abs(t_l - t_r) > window        # false for inf vs inf (NaN)
         l_strictly, r_strictly = (t_l < t_r) & apart, (t_r < t_l) & apart

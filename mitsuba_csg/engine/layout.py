@@ -30,8 +30,7 @@ Hit info word (one per returned hit)::
               the class says its state before t (ENTER: outside, EXIT: inside)
     bits 4-7  SLOPE: k with 2^-(k+1) < |cos| <= 2^-k between the ray and the surface's normal
               (0 to MAX_SLOPE): the event's tie window is 2^(k+1) tie tolerances (see
-              `engine.automaton`), as t errors grow like 1 / |cos|; LAZY_SLOPE until an
-              event's window is needed (`engine.leaf_events.resolved`)
+              `engine.automaton`), as t errors grow like 1 / |cos|
     bits 8-31 face index within the primitive (see `engine.shapes`)
 
 Primitive record: 16 floats per primitive (a power of two, so one gather fetches it)::
@@ -124,7 +123,6 @@ PROVISIONAL_BIT = 0x8
 SLOPE_SHIFT = 4
 SLOPE_MASK = 0xF
 MAX_SLOPE = 10            # |cos| below 2^-10 gets the window of 2^-10: grazing rays may still tie wrongly
-LAZY_SLOPE = SLOPE_MASK   # a leaf event's slope not computed yet: only ties within the widest window need it
 FACE_SHIFT = 8
 _KEEP_OTHERS = 0xFFFFFFFF ^ (CLASS_MASK | FLIP_BIT)    # a literal: Dr.Jit's UInt32 takes no negative ~mask
 
@@ -152,11 +150,6 @@ def info_slope(info):
 
 def info_provisional(info):
     return (info & PROVISIONAL_BIT) != 0
-
-
-def with_slope(info, slope):
-    """`info` with its SLOPE field replaced by `slope`."""
-    return (info & (0xFFFFFFFF ^ (SLOPE_MASK << SLOPE_SHIFT))) | (slope << SLOPE_SHIFT)
 
 
 def with_class(info, cls, flip):

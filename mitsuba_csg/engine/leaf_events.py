@@ -45,28 +45,8 @@ def complement_class(cls):
 
 
 def tie_window(b, tie, slope):
-    """How far in t two events may lie apart and still be one event, for a SLOPE exponent (the
-    widest window for a LAZY_SLOPE: a bound that holds whatever the slope turns out to be)."""
-    return tie * b.Float(b.UInt32(2) << dr.minimum(slope, MAX_SLOPE))
-
-
-@dr.syntax
-def resolved(b, tree, leaf, t, info, o, d, need):
-    """`info` of the event at o + t d on leaf node `leaf`, with its slope computed where `need`
-    and not yet known.
-
-    Leaf events leave their slope LAZY: it only decides ties, between events closer than the
-    widest window, and computing it (the surface's normal at the event) for every event cost
-    ~8 % of a frame. Provisional hits and misses carry no LAZY slope.
-    """
-    lazy = need & (K.info_slope(info) == K.LAZY_SLOPE)
-    if lazy:
-        _, prim, _, _ = node_record(b, tree, leaf, lazy)
-        rows, shape, param, plane_start, _ = gather_prim(b, tree, prim, lazy)
-        slope = shapes.event_slope(b, shape, rows, param, tree.planes, plane_start, K.info_face(info), o, d, t,
-                                   tree.shape_kinds, lazy)
-        info = dr.select(lazy, K.with_slope(info, slope), info)
-    return info
+    """How far in t two events may lie apart and still be one event, for a SLOPE exponent."""
+    return tie * b.Float(b.UInt32(2) << slope)
 
 
 def box_span(b, tree, node, o, inv_d, active):
@@ -77,13 +57,12 @@ def box_span(b, tree, node, o, inv_d, active):
 
 
 def leaf_hit(b, tree, flags, prim, o, d, t_start, tie):
-    """(t, info) of a leaf node's first event after t_start, complement applied; its slope is
-    LAZY_SLOPE (`resolved`)."""
+    """(t, info) of a leaf node's first event after t_start, complement applied."""
     rows, shape, param, plane_start, plane_count = gather_prim(b, tree, prim)
     # A mesh's crossings within a tie window after t_start are the event at t_start again.
     mesh = (tree.triangles, tree.mesh_nodes, 2.0 * tie) if tree.has_meshes else None
-    t, face, cls = shapes.first_event(b, shape, rows, param, tree.planes, plane_start, plane_count, o, d,
-                                      t_start, mesh, tree.shape_kinds)
+    t, face, cls, slope = shapes.first_event(b, shape, rows, param, tree.planes, plane_start, plane_count, o, d,
+                                             t_start, mesh, tree.shape_kinds)
     complemented = K.flags_negative(flags)
     # A complemented leaf swaps enter/exit; missing it means being inside it forever.
     cls = dr.select(complemented, complement_class(cls), cls)
@@ -91,7 +70,7 @@ def leaf_hit(b, tree, flags, prim, o, d, t_start, tie):
     for code in _NON_CONVEX:
         if code in tree.shape_kinds:
             non_convex |= shape == code
-    return t, K.hit_info(cls, dr.select(complemented, FLIP_BIT, 0), face, K.LAZY_SLOPE), non_convex
+    return t, K.hit_info(cls, dr.select(complemented, FLIP_BIT, 0), face, slope), non_convex
 
 
 @dr.syntax
@@ -148,17 +127,9 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
             # exit comes from a second intersection from its entry; then it counts as containing.
             joined = inside | (containing > 0)
             reach = dr.select(joined, dr.maximum(ex_t, t_c), -dr.inf)
-            # The reach is the farthest exit found, or where this pass started (the last one's exit).
-            by_ex = containing > 0
-            reach_leaf, reach_info = dr.select(by_ex, ex_leaf, out_leaf), dr.select(by_ex, ex_info, out_info)
-            entered = joined & ~again & (cls_m == ENTER)
-            close = entered & (t_m > reach) & (t_m <= reach + widest)
-            info_m = resolved(b, tree, node, t_m, info_m, o, d, close)
-            reach_info = resolved(b, tree, reach_leaf, reach, reach_info, o, d, close)
-            ex_info = dr.select(close & by_ex, reach_info, ex_info)
-            out_info = dr.select(close & ~by_ex, reach_info, out_info)
-            w_m = tie_window(b, tie, dr.minimum(K.info_slope(info_m), K.info_slope(reach_info)))
-            again_now = entered & (t_m <= reach + w_m)
+            w_m = tie_window(b, tie, dr.minimum(K.info_slope(info_m), K.info_slope(dr.select(
+                containing > 0, ex_info, out_info))))
+            again_now = joined & ~again & (cls_m == ENTER) & (t_m <= reach + w_m)
             contains = ~again_now & (cls_m == EXIT)
             farther = contains & (t_m > ex_t)
             ex_t, ex_leaf, ex_info = dr.select(farther, t_m, ex_t), dr.select(farther, node, ex_leaf), \
@@ -217,9 +188,6 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
         ended = ~done & (node == _NO_NODE) & (sp == 0)
         if ended:
             found_inside = containing > 0
-            close = ended & found_inside & (en_t > ex_t) & (en_t <= ex_t + widest)
-            ex_info = resolved(b, tree, ex_leaf, ex_t, ex_info, o, d, close)
-            en_info = resolved(b, tree, en_leaf, en_t, en_info, o, d, close)
             window = tie_window(b, tie, dr.minimum(K.info_slope(ex_info), K.info_slope(en_info)))
             # Another member may take over at the farthest exit: one entered before it (or may
             # have been, in a box not opened), or a second containing one that may re-enter.

@@ -188,11 +188,14 @@ def _quadric_event(b, o, d, param, t_start):
 
 @dr.syntax
 def _convex(b, o, d, param, plane_buf, start, count):
-    """The interval (near, far) and the planes it enters and leaves by."""
+    """The interval, and the planes' normals of its ends (for the events' slopes: tracking
+    them here is cheaper than a second gather for every leaf event of every shape)."""
     near = dr.full(b.Float, -dr.inf, dr.width(start))
     far = dr.full(b.Float, dr.inf, dr.width(start))
     near_face = dr.zeros(b.UInt32, dr.width(start))
     far_face = dr.zeros(b.UInt32, dr.width(start))
+    near_normal = dr.zeros(b.Array3f, dr.width(start))
+    far_normal = dr.zeros(b.Array3f, dr.width(start))
     k = dr.zeros(b.UInt32, dr.width(start))
     while dr.hint(k < count, label="csg_convex_planes"):
         plane = dr.gather(b.Array4f, plane_buf, start + k)
@@ -204,13 +207,15 @@ def _convex(b, o, d, param, plane_buf, start, count):
         better_near = entering & (t > near)
         near = dr.select(better_near, t, near)
         near_face = dr.select(better_near, k, near_face)
+        near_normal = dr.select(better_near, n, near_normal)
         better_far = leaving & (t < far)
         far = dr.select(better_far, t, far)
         far_face = dr.select(better_far, k, far_face)
+        far_normal = dr.select(better_far, n, far_normal)
         outside_parallel = (denom == 0) & (dist < 0)
         near = dr.select(outside_parallel, dr.inf, near)
         k += 1
-    return near, far, near_face, far_face
+    return near, far, near_face, far_face, near_normal, far_normal
 
 
 # ---- Mesh: ordered BVH walk, watertight triangle test (Woop, Benthin and Wald 2013) ----
@@ -254,7 +259,7 @@ def _smaller(a, c):
 
 @dr.syntax
 def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
-    """(t, face, class) of a mesh's first crossing after t_start + skip."""
+    """(t, face, class, plane normal) of a mesh's first crossing after t_start + skip."""
     triangles, nodes, skip = mesh
     width = dr.width(t_start)
     root = dr.reinterpret_array(b.UInt32, param[0])
@@ -355,8 +360,9 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
         tri_end = dr.select(leaf, K.mesh_tris_first(next_ref) + K.mesh_tris_count(next_ref), tri_end)
         node = dr.select(leaf, _NO_NODE, dr.select(next_ref != _NO_NODE, next_ref, node))
     found = dr.isfinite(t)
+    plane = dr.gather(b.Array4f, plane_buf, start + face, found)
     cls = dr.select(found, dr.select(enter, b.UInt32(ENTER), b.UInt32(EXIT)), b.UInt32(MISS))
-    return t, face, cls
+    return t, face, cls, b.Array3f(plane.x, plane.y, plane.z)
 
 
 # ---- Torus: root isolation by derivatives, then safeguarded Newton on each bracket ----
@@ -476,38 +482,28 @@ def _torus_events(b, o, d, param):
 
 def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o_world, d_world, t_start,
                 mesh=None, kinds=None):
-    """(t, face, class) of the first boundary event of one primitive after t_start (per lane).
+    """(t, face, class, slope) of the first boundary event of one primitive after t_start (per lane).
 
-    `mesh` is (triangle buffer, mesh node buffer, skip) for mesh leaves (see the module
-    docstring). The event's slope is left to `event_slope`: only ties need it.
+    `slope` is the event's SLOPE exponent (`engine.layout`): how steeply the ray meets the
+    surface there, which scales how far in t float32 rounding can move the event. `mesh` is
+    (triangle buffer, mesh node buffer, skip) for mesh leaves (see the module docstring).
     """
-    o, d = _to_canonical(b, xf_rows, o_world, d_world)
-    return _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d, t_start, mesh, kinds)
-
-
-def event_slope(b, shape, xf_rows, param, plane_buf, plane_start, face, o_world, d_world, t, kinds=None,
-                active=True):
-    """The SLOPE exponent (`engine.layout`) of a primitive's event at o + t d on `face`: how
-    steeply the ray meets the surface there, which scales how far in t float32 rounding can
-    move the event."""
-    o, d = _to_canonical(b, xf_rows, o_world, d_world)
-    plane = dr.gather(b.Array4f, plane_buf, plane_start + face, active & ((shape == CONVEX) | (shape == MESH)))
+    o = b.Array3f(dr.dot(xf_rows[0], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)),
+                  dr.dot(xf_rows[1], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)),
+                  dr.dot(xf_rows[2], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)))
+    d = b.Array3f(dr.dot(b.Array3f(xf_rows[0].x, xf_rows[0].y, xf_rows[0].z), d_world),
+                  dr.dot(b.Array3f(xf_rows[1].x, xf_rows[1].y, xf_rows[1].z), d_world),
+                  dr.dot(b.Array3f(xf_rows[2].x, xf_rows[2].y, xf_rows[2].z), d_world))
+    t, face, cls, plane_normal = _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d,
+                                                    t_start, mesh, kinds)
+    plane = b.Array4f(plane_normal.x, plane_normal.y, plane_normal.z, 0.0)
     _, grad = surface_function(b.module, shape, face, param, plane, o + t * d, kinds)
     # The world normal is M^T grad for the rows M of world -> canonical; grad . d is the same
     # in both frames.
     normal = b.Array3f(*(xf_rows[0][i] * grad.x + xf_rows[1][i] * grad.y + xf_rows[2][i] * grad.z
                          for i in range(3)))
     cos = dr.abs(dr.dot(grad, d)) * dr.rsqrt(dr.squared_norm(normal) * dr.squared_norm(d_world))
-    return _slope_exponent(b, cos)
-
-
-def _to_canonical(b, xf_rows, o_world, d_world):
-    o4 = b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)
-    o = b.Array3f(dr.dot(xf_rows[0], o4), dr.dot(xf_rows[1], o4), dr.dot(xf_rows[2], o4))
-    d = b.Array3f(dr.dot(b.Array3f(xf_rows[0].x, xf_rows[0].y, xf_rows[0].z), d_world),
-                  dr.dot(b.Array3f(xf_rows[1].x, xf_rows[1].y, xf_rows[1].z), d_world),
-                  dr.dot(b.Array3f(xf_rows[2].x, xf_rows[2].y, xf_rows[2].z), d_world))
-    return o, d
+    return t, face, cls, _slope_exponent(b, cos)
 
 
 def _slope_exponent(b, cos):
@@ -524,6 +520,8 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
     far = dr.full(b.Float, -dr.inf, width)
     near_face = dr.zeros(b.UInt32, width)
     far_face = dr.zeros(b.UInt32, width)
+    near_normal = dr.zeros(b.Array3f, width)
+    far_normal = dr.zeros(b.Array3f, width)
     t = dr.full(b.Float, dr.inf, width)
     face = dr.zeros(b.UInt32, width)
     cls = dr.full(b.UInt32, MISS, width)
@@ -534,10 +532,12 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
                 near, far, near_face, far_face = kind.interval(b, o, d, param, plane_buf, plane_start, plane_count)
     if dr.hint(CONVEX in present, mode="scalar"):
         if shape == CONVEX:
-            near, far, near_face, far_face = _convex(b, o, d, param, plane_buf, plane_start, plane_count)
+            near, far, near_face, far_face, near_normal, far_normal = _convex(b, o, d, param, plane_buf, plane_start,
+                                                                              plane_count)
     if dr.hint(mesh is not None and MESH in present, mode="scalar"):
         if shape == MESH:
-            t, face, cls = _mesh(b, o, d, param, plane_buf, plane_start, mesh, t_start)
+            t, face, cls, near_normal = _mesh(b, o, d, param, plane_buf, plane_start, mesh, t_start)
+            far_normal = b.Array3f(near_normal)
     if dr.hint(QUADRIC in present, mode="scalar"):
         if shape == QUADRIC:
             t, face, cls = _quadric_event(b, o, d, param, t_start)
@@ -557,7 +557,7 @@ def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, 
                 seen += dr.select(ok, 1, 0)
     t_i, face_i, cls_i = _interval_event(b, near, far, near_face, far_face, t_start)
     t, face, cls = dr.select(own, t, t_i), dr.select(own, face, face_i), dr.select(own, cls, cls_i)
-    return t, face, cls
+    return t, face, cls, dr.select(cls == ENTER, near_normal, far_normal)
 
 
 def _present(kinds):
