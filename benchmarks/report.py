@@ -217,6 +217,26 @@ def main():
                        f"{fmt(r.get('embree_s'), '.3f')} | {fmt(given, '.1f')} | "
                        f"{fmt(r.get('reorder_over_embree'), '.1f')} |")
         out.append("")
+    depths = load("path_depths")
+    if depths:
+        m = depths["machine"]
+        out += ["## csg_path frames by path depth", "",
+                f"`./run.sh bench path_depths.py` ({m['date']}, `{m['variant']}`): 1-spp {depths['args']['size']} "
+                "frames of mesh_route.py's scene (floor, sky, sun, one diffuse BSDF) with `max_depth` set per "
+                "row: `csg_path` on the CSG shape and Mitsuba's `path` on its manifold3d mesh, and both on a "
+                "box of the model's bounds, which costs each integrator what it spends besides tracing the "
+                "model. 'CSG traversal' is csg_path's frame less its box frame, 'Embree traversal' path's less "
+                "its box frame: what tracing the model adds to each on the camera, shadow and bounce rays of "
+                "a path tracer (many of which start on the model, inside the Cheese's holes).", "",
+                "| scene | max_depth | csg_path s | path s | csg_path / path | csg_path box s | path box s | "
+                "CSG traversal s | Embree traversal s | traversal ratio |",
+                "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in depths["rows"]:
+            out.append(f"| {r['scene']} | {r['max_depth']} | {r['csg_path_s']:.3f} | {r['path_s']:.3f} | "
+                       f"{r['ratio']:.2f} | {r['csg_path_s_bare']:.3f} | {r['path_s_bare']:.3f} | "
+                       f"{r['csg_traversal_s']:.3f} | {r['embree_traversal_s']:.3f} | "
+                       f"{fmt(r['traversal_ratio'], '.1f')} |")
+        out.append("")
     several = load("several_shapes")
     if several:
         m = several["machine"]

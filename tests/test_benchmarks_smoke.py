@@ -41,6 +41,8 @@ def test_generators(make, prims):
     ("gradient_cost.py", ["--size", "16x12", "--spp", "2", "--repeats", "1"]),
     ("several_shapes.py", ["--counts", "2,3", "--holes", "5", "--size", "32x18", "--repeats", "1"]),
     ("incoherent_rays.py", ["--scenes", "cheese-500", "--rays", "500", "--repeats", "1", "--segments", "8"]),
+    ("path_depths.py", ["--scenes", "cheese-500", "--depths", "1,2", "--size", "32x18", "--repeats", "1",
+                        "--segments", "8"]),
     ("batch_scaling.py", ["--jobs", "2", "--size", "16x9", "--spp", "2", "--chunk-spp", "1", "--overhead-spp", "2"]),
 ])
 def test_benchmark_scripts(script, args, tmp_path):
