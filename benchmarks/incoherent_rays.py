@@ -13,7 +13,9 @@ Three batches per scene, seeded:
 - surface: the benchmark camera's hits on the model (1280x720, trace_throughput.py's camera,
   4x4 pixel tiles), each continued in a cosine-distributed direction about the hit's normal
   from 1e-4 of the model's size off the surface: the first bounce of a path tracer off the
-  model itself (one ray per hit, up to --rays: fewer rays than the other batches).
+  model itself (one ray per hit, up to --rays: fewer rays than the other batches). It is
+  traced a third time with each ray's start primitive (`trace_rays(start_prim=...)`, the
+  camera hit's primitive, as csg_path passes it): 'hinted' columns.
 Rows give the fraction of rays that meet the model's box, mean steps per ray (and for the
 rays in the box, those that hit the model and those that leave it), the SIMD
 packet utilization of the batch as given (mean steps / mean of each 16-lane packet's maximum:
@@ -44,7 +46,7 @@ def batches(model, n, seed=1):
     u1, u2 = rng.random(n), rng.random(n)
     cosine = cosine_directions(u1, u2)
     points = rng.uniform(lo, hi, (n, 3))
-    return {"bounce": (ground, cosine), "points": (points, np.tile(_PROBE, (n, 1))),
+    return {"bounce": (ground, cosine, None), "points": (points, np.tile(_PROBE, (n, 1)), None),
             "surface": surface_bounces(model, rng, n)}
 
 
@@ -55,8 +57,9 @@ def cosine_directions(u1, u2):
 
 
 def surface_bounces(model, rng, n):
-    """(origins, directions) of first bounces off the model: the benchmark camera's hits (the
-    first n), each with a cosine-distributed direction about the hit's normal."""
+    """(origins, directions, start primitives) of first bounces off the model: the benchmark
+    camera's hits (the first n), each with a cosine-distributed direction about the hit's
+    normal, and the primitive hit."""
     import mitsuba_csg as csg
     from trace_throughput import rays_for
     o, d = rays_for(model, 1280, 720)
@@ -71,7 +74,7 @@ def surface_bounces(model, rng, n):
     s /= np.linalg.norm(s, axis=1, keepdims=True)
     t = np.cross(normal, s)
     direction = local[:, :1] * s + local[:, 1:2] * t + local[:, 2:] * normal
-    return origin, direction
+    return origin, direction, hits.prim[found].astype(np.uint32)
 
 
 def main(argv=None):
@@ -94,7 +97,7 @@ def main(argv=None):
         if not args.no_mesh:
             from mesh_route import composed_mesh, embree_primary, mitsuba_mesh
             mesh = mitsuba_mesh(*composed_mesh(model, args.segments))
-        for batch, (o, d) in batches(model, args.rays).items():
+        for batch, (o, d, start) in batches(model, args.rays).items():
             plain, reordered = {}, {}
             plain_s = measure(prepared, o, d, args.repeats, hits=plain)[0]["min_s"]
             reorder_s = measure(prepared, o, d, args.repeats, reorder=True, hits=reordered)[0]["min_s"]
@@ -110,6 +113,11 @@ def main(argv=None):
                        steps_hit=float(steps[in_box & hit].mean()) if np.any(in_box & hit) else float("nan"),
                        steps_leave=float(steps[in_box & ~hit].mean()) if np.any(in_box & ~hit) else float("nan"),
                        plain_s=plain_s, reorder_s=reorder_s, speedup=plain_s / reorder_s, identical=same)
+            if start is not None:
+                given = {}
+                row["hinted_s"] = measure(prepared, o, d, args.repeats, hits=given, start_prim=start)[0]["min_s"]
+                row["steps_hinted"] = float(given["h"].steps.numpy().mean())
+                row["hinted_same_t"] = bool(np.array_equal(given["h"].t.numpy(), plain.t.numpy(), equal_nan=True))
             if mesh is not None:
                 row["embree_s"] = embree_primary(mesh, o, d, args.repeats)
                 row["reorder_over_embree"] = reorder_s / row["embree_s"]
@@ -120,12 +128,15 @@ def main(argv=None):
                ("box_fraction", "rays in box", ".2f"), ("mean_steps", "steps/ray", ".1f"),
                ("steps_hit", "steps/ray hit", ".1f"), ("steps_leave", "steps/ray leave", ".1f"),
                ("utilization", "SIMD use", ".2f"), ("plain_s", "as given s", ".3f"),
-               ("reorder_s", "reordered s", ".3f"), ("speedup", "speed-up", ".2f"), ("embree_s", "Embree s", ".3f"),
+               ("reorder_s", "reordered s", ".3f"), ("speedup", "speed-up", ".2f"),
+               ("steps_hinted", "steps/ray hinted", ".1f"), ("hinted_s", "hinted s", ".3f"), ("embree_s", "Embree s", ".3f"),
                ("reorder_over_embree", "reordered/Embree", ".1f")]
     print(f"{args.rays} rays per bounce / points batch, {common.machine()['cpu']}, {common.machine()['variant']}")
     print(common.table(rows, columns))
     if not all(r["identical"] for r in rows):
         raise SystemExit("reordered results differ from the rays traced as given")
+    if not all(r.get("hinted_same_t", True) for r in rows):
+        raise SystemExit("rays traced with start_prim hit at other distances than without")
     print(f"wrote {common.write(args.name, {'machine': common.machine(), 'args': vars(args), 'rows': rows})}")
 
 

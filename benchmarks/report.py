@@ -203,19 +203,23 @@ def main():
                 "on the ground under the model with cosine-distributed upward directions; `points`: points "
                 "uniform in the model's box, each with the fixed direction of `csg.contains`; `surface`: the "
                 "benchmark camera's hits on the model, each continued in a cosine-distributed direction about "
-                "its normal (a path tracer's first bounce off the model). Steps per ray of the rays in the box "
-                "that hit the model and that leave it are given apart. SIMD use is the "
+                "its normal (a path tracer's first bounce off the model), also traced with each ray's start "
+                "primitive (`trace_rays(start_prim=...)`, as csg_path passes it: 'hinted'). Steps per ray of "
+                "the rays in the box that hit the model and that leave it are given apart. SIMD use is the "
                 "mean steps over the mean of each 16-lane packet's largest, for the batch as given.", "",
                 "| scene | batch | rays | rays in box | steps/ray | steps/ray hit / leave | SIMD use | as given s | "
-                "reordered s | speed-up | Embree s | as given / Embree | reordered / Embree |",
-                "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                "reordered s | speed-up | hinted steps/ray | hinted s | Embree s | as given / Embree | "
+                "reordered / Embree | hinted / Embree |",
+                "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in incoherent["rows"]:
             given = r["plain_s"] / r["embree_s"] if r.get("embree_s") else None
+            hinted = r["hinted_s"] / r["embree_s"] if r.get("embree_s") and r.get("hinted_s") else None
             out.append(f"| {r['scene']} | {r['batch']} | {r['rays']} | {r['box_fraction']:.2f} | "
                        f"{r['mean_steps']:.1f} | {fmt(r.get('steps_hit'), '.1f')} / {fmt(r.get('steps_leave'), '.1f')} | "
                        f"{r['utilization']:.2f} | {r['plain_s']:.3f} | {r['reorder_s']:.3f} | {r['speedup']:.2f} | "
+                       f"{fmt(r.get('steps_hinted'), '.1f')} | {fmt(r.get('hinted_s'), '.3f')} | "
                        f"{fmt(r.get('embree_s'), '.3f')} | {fmt(given, '.1f')} | "
-                       f"{fmt(r.get('reorder_over_embree'), '.1f')} |")
+                       f"{fmt(r.get('reorder_over_embree'), '.1f')} | {fmt(hinted, '.1f')} |")
         out.append("")
     depths = load("path_depths")
     if depths:

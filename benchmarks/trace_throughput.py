@@ -48,21 +48,23 @@ def rays_for(model, width, height):
     return o, d
 
 
-def measure(prepared, o, d, repeats, frozen=False, reorder=False, hits=None):
+def measure(prepared, o, d, repeats, frozen=False, reorder=False, hits=None, start_prim=None):
     """Best seconds of a primary-ray frame (hits, normals, steps) and its statistics;
     `frozen` replays the recorded kernels (trace_rays(frozen=True)) instead of tracing them,
-    `reorder` sorts the rays first (trace_rays(reorder=True)). The last run's RayHits go into
+    `reorder` sorts the rays first (trace_rays(reorder=True)), `start_prim` (numpy, per ray)
+    passes trace_rays the primitive each ray starts on. The last run's RayHits go into
     `hits["h"]` when a dict is given."""
     import drjit as dr
 
     from mitsuba_csg.queries import rays_to_device, trace_rays
     b = prepared.tree.b
     O, D = rays_to_device(o, b), rays_to_device(d, b)
-    dr.eval(O, D)
+    start = None if start_prim is None else b.UInt32(np.asarray(start_prim, np.uint32))
+    dr.eval(O, D, start)
     out = {} if hits is None else hits
 
     def run():
-        h = trace_rays(prepared, O, D, frozen=frozen, reorder=reorder)
+        h = trace_rays(prepared, O, D, frozen=frozen, reorder=reorder, start_prim=start)
         dr.eval(h.t, h.normal, h.prim, h.steps, h.finished)
         dr.sync_thread()
         out["h"] = h

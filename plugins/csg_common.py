@@ -59,13 +59,14 @@ class SceneCSG:
         # Grouped here, before any symbolic loop: buffers made inside a loop body belong to it.
         self._traced()
 
-    def intersect(self, scene: mi.Scene, ray: mi.Ray3f, active, attached: bool = False):
+    def intersect(self, scene: mi.Scene, ray: mi.Ray3f, active, attached: bool = False, start_prim=None):
         """Nearest surface interaction over Mitsuba's shapes and the CSG shapes.
 
         Returns (si, bsdf, csg_hit, csg_prim, csg_shape): the BSDF pointer per lane (per
         primitive material on CSG hits), whether the hit is on a CSG shape, and which.
         With `attached`, CSG hits carry derivatives of t, p and n with respect to the
-        shapes' `primitive_to_world` (call it inside `dr.resume_grad`).
+        shapes' `primitive_to_world` (call it inside `dr.resume_grad`). `start_prim`: where
+        the ray leaves a CSG hit, `start_of` that hit (a hint that saves traversal work).
         """
         if self.has_others:
             si = scene.ray_intersect(ray, mi.RayFlags.All, coherent=False, active=active)
@@ -77,7 +78,8 @@ class SceneCSG:
         if not self.csg:
             return si, bsdf, mi.Bool(False), mi.UInt32(0), mi.UInt32(0)
         prepared, solid_of_prim, prim_offset = self._traced()
-        hits = trace_rays(prepared, ray.o, ray.d, 0.0, dr.detach(dr.minimum(ray.maxt, si.t)), active=active)
+        hits = trace_rays(prepared, ray.o, ray.d, 0.0, dr.detach(dr.minimum(ray.maxt, si.t)), active=active,
+                          start_prim=start_prim)
         csg_hit = mi.Bool(active & (hits.t < si.t) & dr.isfinite(hits.t))
         t = mi.Float(hits.t)
         n = mi.Normal3f(hits.normal)
@@ -122,13 +124,24 @@ class SceneCSG:
         si = dr.select(csg_hit, csg_si, si)
         return si, bsdf, csg_hit, dr.select(csg_hit, local_prim, 0), dr.select(csg_hit, solid, 0)
 
-    def occluded(self, scene: mi.Scene, ray: mi.Ray3f, active):
-        """Shadow test of `ray` (up to ray.maxt) against Mitsuba's shapes and the CSG shapes."""
+    def occluded(self, scene: mi.Scene, ray: mi.Ray3f, active, start_prim=None):
+        """Shadow test of `ray` (up to ray.maxt) against Mitsuba's shapes and the CSG shapes;
+        `start_prim` as in `intersect`."""
         blocked = scene.ray_test(ray, active) if self.has_others else mi.Bool(False)
         if self.csg:
-            hits = trace_rays(self._traced()[0], ray.o, ray.d, 0.0, dr.detach(ray.maxt), active=active & ~blocked)
+            hits = trace_rays(self._traced()[0], ray.o, ray.d, 0.0, dr.detach(ray.maxt), active=active & ~blocked,
+                              start_prim=start_prim)
             blocked |= active & mi.Bool(dr.isfinite(hits.t))
         return blocked
+
+    def start_of(self, csg_hit, csg_prim, csg_shape):
+        """Per lane, the traced tree's primitive of an `intersect` hit (NO_LEAF off CSG shapes):
+        the `start_prim` of rays that continue from it."""
+        _, _, prim_offset = self._traced()
+        prim = mi.UInt32(csg_prim)
+        if prim_offset is not None:
+            prim += dr.gather(mi.UInt32, prim_offset, csg_shape, csg_hit)
+        return dr.select(csg_hit, prim, mi.UInt32(0xFFFFFFFF))
 
     def _traced(self):
         """(prepared tree, solid of each primitive, first primitive of each solid) to trace:

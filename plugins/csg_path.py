@@ -70,9 +70,11 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
         prev_si = dr.zeros(mi.Interaction3f)        # previous vertex, for MIS of emitter hits
         prev_bsdf_pdf = mi.Float(1.0)
         prev_bsdf_delta = mi.Bool(True)
+        start = mi.UInt32(0xFFFFFFFF)               # the CSG primitive the ray leaves (a traversal hint)
 
         while dr.hint(active, max_iterations=self.max_depth, label="csg_path"):
-            si, bsdf, _, _, _ = csg.intersect(scene, ray, active)
+            si, bsdf, csg_hit, csg_prim, csg_shape = csg.intersect(scene, ray, active, start_prim=start)
+            start = csg.start_of(csg_hit, csg_prim, csg_shape)
 
             # ---------------------- Direct emission ----------------------
             ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
@@ -89,7 +91,7 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active_em)
             active_em &= ds.pdf != 0.0
-            occluded = csg.occluded(scene, si.spawn_ray_to(ds.p), active_em)
+            occluded = csg.occluded(scene, si.spawn_ray_to(ds.p), active_em, start_prim=start)
             active_em &= ~occluded
             wo = si.to_local(ds.d)
             bsdf_value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)

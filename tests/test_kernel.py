@@ -247,6 +247,77 @@ def test_reordered_rays_agree_with_reference_and_with_rays_as_given(model, seed)
     assert np.all(np.isinf(none.t.numpy())) and not np.any(none.steps.numpy())
 
 
+@given(model=models(max_leaves=8), seed=st.integers(0, 2**31))
+def test_start_prim_changes_no_result(model, seed):
+    """Rays that continue from hits (a path tracer's bounce and shadow rays: from either side
+    of the surface, in any direction) traced with the hit's primitive as `start_prim`, and
+    with a wrong one, give the results of the rays traced without it bit for bit, as given
+    and reordered, and agree with the float64 reference. The one freedom: where set members'
+    exits coincide exactly (coincident faces), which of them is reported (found with
+    Sphere(1) | Sphere(1))."""
+    from types import SimpleNamespace
+
+    from mitsuba_csg.queries import trace_rays
+    rng = np.random.default_rng(seed)
+    o, d = make_rays(seed, 128, targets=[leaf.matrix[:3, 3] for leaf in model.leaves()])
+    first = csg.trace(model, o, d)
+    hit = np.flatnonzero(np.isfinite(first.t))
+    if not len(hit):
+        return
+    unit = d[hit] / np.linalg.norm(d[hit], axis=1, keepdims=True)
+    n = first.normal[hit]
+    side = rng.choice([-1.0, 1.0], len(hit))                # the empty side (+n) or into the solid
+    origin = o[hit] + first.t[hit, None] * d[hit] + side[:, None] * 1e-4 * n
+    direction = rng.normal(size=origin.shape)
+    direction *= np.sign(np.einsum("ij,ij->i", direction, n) * side)[:, None]
+    direction[::5] = np.where(side[::5, None] > 0, -unit[::5] + 2 * n[::5] * np.einsum("ij,ij->i", unit[::5], n[::5])[:, None],
+                              unit[::5])                  # mirror reflections, and straight on into the solid
+    start = first.prim[hit].astype(np.uint32)
+    wrong = rng.random(len(hit)) < 0.25
+    start[wrong] = rng.integers(0, len(model.leaves()), int(wrong.sum()))
+    start[::7] = 0xFFFFFFFF
+    prepared = csg.prepare(model)
+    b = prepared.tree.b
+    O, D, S = csg.rays_to_device(origin, b), csg.rays_to_device(direction, b), b.UInt32(start)
+    plain = trace_rays(prepared, O, D)
+    for reorder in (False, True):
+        hinted = trace_rays(prepared, O, D, start_prim=S, reorder=reorder)
+        for name in ("t", "entering", "finished", "info"):
+            assert np.array_equal(np.asarray(getattr(plain, name).numpy()),
+                                  np.asarray(getattr(hinted, name).numpy()), equal_nan=True), (name, reorder)
+        other = plain.prim.numpy() != hinted.prim.numpy()
+        same_normal = np.asarray(plain.normal.numpy()) == np.asarray(hinted.normal.numpy())
+        assert np.all(same_normal[:, ~other]), reorder
+        # Another of the coincident faces: the same surface.
+        assert np.all(np.einsum("ij,ij->j", plain.normal.numpy(), hinted.normal.numpy())[other] > 0.9999), reorder
+    got = SimpleNamespace(t=hinted.t.numpy(), prim=hinted.prim.numpy().astype(np.int64),
+                          normal=np.asarray(hinted.normal.numpy()).T, entering=hinted.entering.numpy(),
+                          unfinished=int(np.sum(~hinted.finished.numpy())))
+    got.prim[~np.isfinite(got.t)] = -1
+    compare(model, got, origin, direction, check_prim=not np.any(other))
+
+
+def test_start_prim_saves_steps_on_rays_leaving_a_hole():
+    """The case the hint is for: rays from the inside of a Cheese's hole's wall into the hole
+    take fewer steps (the same hits: test_start_prim_changes_no_result)."""
+    from mitsuba_csg.queries import trace_rays
+    model = cheese(40)
+    prepared = csg.prepare(model)
+    b = prepared.tree.b
+    o, d = make_rays(4, 2000)
+    first = csg.trace(model, o, d)
+    on_hole = np.flatnonzero(np.isfinite(first.t) & (first.prim > 0))      # leaf 0 is the cube
+    n = first.normal[on_hole]
+    origin = o[on_hole] + first.t[on_hole, None] * d[on_hole] + 1e-4 * n
+    direction = n + 0.5 * np.random.default_rng(0).normal(size=n.shape)
+    direction *= np.sign(np.einsum("ij,ij->i", direction, n))[:, None]
+    O, D = csg.rays_to_device(origin, b), csg.rays_to_device(direction, b)
+    plain = trace_rays(prepared, O, D)
+    hinted = trace_rays(prepared, O, D, start_prim=b.UInt32(first.prim[on_hole].astype(np.uint32)))
+    assert np.array_equal(plain.t.numpy(), hinted.t.numpy(), equal_nan=True)
+    assert hinted.steps.numpy().mean() < 0.9 * plain.steps.numpy().mean()
+
+
 def test_reorder_inside_a_symbolic_loop_is_ignored():
     """Nothing can be evaluated while a symbolic loop is recorded (the integrators' path
     loops): there trace_rays(reorder=True) traces the rays as given."""

@@ -13,6 +13,7 @@ import pytest
 
 import mitsuba_csg as csg
 from mitsuba_csg.formats.mesh_export import save_mesh
+from mitsuba_csg.scenes import cheese
 
 ROOT = Path(__file__).resolve().parents[1]
 LOOK = mi.ScalarTransform4f().look_at([4, -6, 3], [0, 0, 0], [0, 0, 1])
@@ -81,6 +82,19 @@ def test_other_variants_and_variant_switch():
 
 
 @pytest.mark.slow
+def test_csg_path_start_hints_change_no_pixel(monkeypatch):
+    """csg_path tells the traversal which CSG primitive each bounce and shadow ray leaves
+    (`SceneCSG.start_of`, a hint that saves work inside holes); without the hints the image
+    is the same bit for bit."""
+    from mitsuba_csg.plugins import csg_common
+    scene = mi.load_dict(scene_dict(csg_shape(cheese(12)), {"type": "csg_path", "max_depth": 4},
+                                    width=32, height=24, spp=4))
+    hinted = np.array(mi.render(scene, seed=1))
+    monkeypatch.setattr(csg_common.SceneCSG, "start_of",
+                        lambda self, hit, prim, shape: dr.full(mi.UInt32, 0xFFFFFFFF, dr.width(hit)))
+    assert np.array_equal(hinted, np.array(mi.render(scene, seed=1)))
+
+
 def test_csg_path_matches_path_on_the_mesh(tmp_path):
     """Metric: relative MSE = mean((a - b)^2) / mean(b^2) at equal spp. Two mesh renders with
     different seeds set the noise floor; the CSG render must be within 1.5x of it (plus the

@@ -86,23 +86,32 @@ def _tie_tolerance(b, tree, o, d):
 
 
 @dr.syntax
-def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
+def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
     """Run the automaton. Returns (t, leaf node, info, finished, steps) per lane, all detached;
     steps are automaton iterations plus set-walk iterations (the work done).
 
     Lanes where `active` is false do no work and miss (an integrator's finished paths, or
-    shadow rays it does not need, would otherwise be traced in full).
+    shadow rays it does not need, would otherwise be traced in full). `start_prim` (per lane,
+    or NO_LEAF) is the primitive whose surface the ray starts on, a hint for the set walk
+    (`engine.leaf_events.next_event`) that changes no hit distance or class.
     """
     b = tree.b
     tree = Untraversed(tree)
     # Every lane's registers must be full width, whichever input is widest: with a width-1
     # origin (a camera's rays share theirs) the loop state would be width 1, and Dr.Jit 1.5's
     # LLVM backend then mixes lanes' per-lane stacks (tests/test_drjit_workarounds.py).
-    n = max(dr.width(o.x), dr.width(d.x), dr.width(tmin), dr.width(tmax), dr.width(active))
+    n = max(dr.width(o.x), dr.width(d.x), dr.width(tmin), dr.width(tmax), dr.width(active),
+            1 if start_prim is None else dr.width(start_prim))
     o, d, k = scene_rays(tree, o, d)
     tmin, tmax = tmin * k, tmax * k
     inv_d = inverse_direction(b, d)
     tie = _tie_tolerance(b, tree, o, d)
+    if dr.hint(start_prim is not None, mode="scalar"):
+        # The start primitive's leaf, if it is a set member, and the set.
+        known = b.UInt32(start_prim) < dr.opaque(b.UInt32, tree.num_prims)
+        start_leaf = dr.gather(b.UInt32, tree.prim_start, b.UInt32(start_prim) * 2, known)
+        start_set = dr.gather(b.UInt32, tree.prim_start, b.UInt32(start_prim) * 2 + 1, known)
+        start_set = dr.select(known, start_set, NO_LEAF)
 
     # ---- Loop state (all full width: a width-1 literal stack index misbehaved in Dr.Jit 1.5,
     #      see tests/test_drjit_workarounds.py) ----
@@ -258,8 +267,12 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True):
             t_c, info_c, _ = leaf_hit(b, tree, leaf_flags, prim, o, d, t_start, tie)
         walking = searching & ~lone
         if walking:
+            member = None
+            if dr.hint(start_prim is not None, mode="scalar"):
+                # Only the ray's first search from its own start is inside the start member.
+                member = dr.select(walking & (start_set == child) & (t_start == tmin), start_leaf, NO_LEAF)
             t_c, leaf_c, info_c, iterations = next_event(b, tree, child, o, d, inv_d, t_start, entry_bound,
-                                                         exit_bound, tmax, tie, walking)
+                                                         exit_bound, tmax, tie, walking, member)
             walked += iterations
         known = going & ~descend
         set_r, set_l = known & go_right, known & ~go_right

@@ -65,6 +65,9 @@ class KernelTree:
                             # their boxes (lower xyz, upper xyz each; NaN for an empty slot)
     walk_entry: object      # UInt32 per node: where a set walk from it starts (its 4-wide root, or
                             # the node itself for a leaf)
+    prim_start: object      # UInt32, 2 per primitive: its leaf node, and the set that leaf is a member
+                            # of (NO_LEAF if none): where a ray starting on the primitive's surface
+                            # starts inside a set member (engine.leaf_events.next_event's `start_member`)
     walk_stack_size: int    # per-lane entries of the set walk's stack (a size class, as stack_size)
     prim_record: object     # Float, 16 per primitive (layout.PRIM_*)
     planes: object          # Float, 4 per plane (convex faces and mesh triangles)
@@ -148,6 +151,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         node_wide[ops, offset:offset + 3] = box[child[ops], 0:3]
         node_wide[ops, offset + 3:offset + 6] = box[child[ops], 4:7]
     set_nodes, walk_entry, pending = _wide_sets(sets, kind, left, right, lower, upper, box)
+    prim_start = _prim_start(flat.num_prims, len(flat.node_kind), sets, kind, left, parent)
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
     # world -> canonical after scene -> world (x = centre + x' / inv_scale)
     rows = flat.prim_to_canonical.copy()
@@ -177,6 +181,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         b=b, node_record=owned(b.UInt32, node_record.astype(np.uint32).ravel()),
         node_box=owned(b.Float, box.astype(np.float32).ravel()), node_wide=owned(b.Float, node_wide.ravel()),
         set_nodes=owned(b.Float, set_nodes.ravel()), walk_entry=owned(b.UInt32, walk_entry),
+        prim_start=owned(b.UInt32, prim_start.ravel()),
         walk_stack_size=max(stack_size_class(height), stack_size_class(pending + 1), WALK_STACK_MIN),
         prim_record=owned(b.Float, prim_record.ravel()),
         planes=owned(b.Float, planes.astype(np.float32).ravel()),
@@ -281,6 +286,31 @@ def _set_roots(kind, neg, group, left, right, parent, height):
     has_parent = parent >= 0
     parent_pure[has_parent] = pure[parent[has_parent]]
     return pure & (kind != K.LEAF) & ~parent_pure
+
+
+def _prim_start(num_prims, n_real, sets, kind, left, parent) -> np.ndarray:
+    """(leaf node, set root or NO_LEAF) per primitive: the set a ray starting on the
+    primitive's surface may start inside a member of. Nodes from `n_real` on are the virtual
+    root's (no primitive of their own)."""
+    out = np.full((max(num_prims, 1), 2), K.NO_LEAF, np.uint32)
+    leaves = np.flatnonzero(kind[:n_real] == K.LEAF)
+    out[left[leaves], 0] = leaves
+    # Sets do not nest, so a leaf's set is the one set root among its ancestors: climb all
+    # leaves one level per step.
+    owner = np.full(len(leaves), -1, np.int64)
+    above = parent[leaves].astype(np.int64)
+    climbing = above >= 0
+    while np.any(climbing):
+        at = above[climbing]
+        found = sets[at]
+        idx = np.flatnonzero(climbing)
+        owner[idx[found]] = at[found]
+        climbing[idx[found]] = False
+        above[idx] = np.where(found, -1, parent[at])
+        climbing &= above >= 0
+    member = owner >= 0
+    out[left[leaves[member]], 1] = owner[member]
+    return out
 
 
 def _wide_sets(sets, kind, left, right, lower, upper, box) -> tuple[np.ndarray, np.ndarray, int]:

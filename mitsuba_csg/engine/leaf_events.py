@@ -74,12 +74,21 @@ def leaf_hit(b, tree, flags, prim, o, d, t_start, tie):
 
 
 @dr.syntax
-def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tmax, tie, active):
+def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tmax, tie, active,
+               start_member=None):
     """(t, leaf node, info, iterations) of the next event after t_start of the leaf or set at `root`.
 
     Outside at t_start, entries past `entry_bound` need not be found; inside, exits past
     `exit_bound` need not be found. Either way the result may then be provisional at the
     bound (where it is < tmax): the state up to it. Lanes where `active` is false do nothing.
+
+    `start_member` (a member leaf of this set per lane, or NO_LEAF) is a member the ray may
+    start inside of: a ray leaving a hole's wall into the hole. Where its first event after
+    t_start is an exit, the union is inside up to there whatever the other members do, and
+    only members that hold that exit can take over: the walk starts as the next pass of a
+    walk that ended inside there (one search around the exit instead of one along the whole
+    chord). The result is the same, but for which member is reported where several exits
+    coincide exactly.
     """
     width = dr.width(t_start)
     tree = Untraversed(tree)
@@ -109,6 +118,24 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
     widest = tie_window(b, tie, MAX_SLOPE)
     done = ~b.Bool(active)
     iterations = dr.zeros(b.UInt32, width)
+    if dr.hint(start_member is not None, mode="scalar"):
+        hinted = b.Bool(active) & (start_member != NO_LEAF)
+        if hinted:
+            flags_h, prim_h, _, _ = node_record(b, tree, start_member, hinted)
+            t_h, info_h, _ = leaf_hit(b, tree, flags_h, prim_h, o, d, t_start, tie)
+            holds = hinted & (K.info_class(info_h) == EXIT) & dr.isfinite(t_h)
+            # Past the exit bound only the state matters: inside up to the bound, as a pass says.
+            unsure = holds & (t_h >= exit_bound) & (exit_bound < tmax)
+            res_t = dr.select(unsure, exit_bound, res_t)
+            res_leaf = dr.select(unsure, b.UInt32(root), res_leaf)
+            res_info = dr.select(unsure, b.UInt32(EXIT) | K.PROVISIONAL_BIT, res_info)
+            done |= unsure
+            held = holds & ~unsure
+            inside |= held
+            out_t, out_leaf, out_info = dr.select(held, t_h, out_t), dr.select(held, start_member, out_leaf), \
+                dr.select(held, info_h, out_info)
+            t_c, from_t = dr.select(held, t_h, t_c), dr.select(held, t_h, from_t)
+            iterations += dr.select(hinted, 1, 0)
 
     while dr.hint(~done & (sp < walk_stack_size), label="csg_set_walk"):
         iterations += 1
