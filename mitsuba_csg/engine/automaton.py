@@ -109,8 +109,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
     if dr.hint(start_prim is not None, mode="scalar"):
         # The start primitive's leaf, if it is a set member, and the set.
         known = b.UInt32(start_prim) < dr.opaque(b.UInt32, tree.num_prims)
-        start_leaf = dr.gather(b.UInt32, tree.prim_start, b.UInt32(start_prim) * 2, known)
-        start_set = dr.gather(b.UInt32, tree.prim_start, b.UInt32(start_prim) * 2 + 1, known)
+        start_leaf, start_set = dr.gather(b.module.Array2u, tree.prim_start, b.UInt32(start_prim), known)
         start_set = dr.select(known, start_set, NO_LEAF)
 
     # ---- Loop state (all full width: a width-1 literal stack index misbehaved in Dr.Jit 1.5,
