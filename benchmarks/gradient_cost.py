@@ -1,7 +1,7 @@
 """Cost of a gradient iteration against the primal render, for a hole's radius; with
 --accuracy, how close each route's gradient image comes to finite differences.
 
-    ./run.sh bench gradient_cost.py [--size 128x96] [--spp 8] [--mesh] [--accuracy]
+    ./run.sh bench gradient_cost.py [--size 128x96] [--spp 8] [--mesh] [--accuracy] [--indirect]
 
 A box minus a sphere, the sphere's radius (its `primitive_scale`) differentiated, a camera
 light: one optimization iteration is a render with parameters attached plus `dr.backward`
@@ -15,6 +15,12 @@ vertices on the sphere and on the rim move rigidly with it. Forward gradient ima
 spp) of csg_prb, csg_prb_projective and Mitsuba's prb_projective on the manifold3d mesh
 (with interpolated vertex normals, and with face normals), against central differences
 (4096 spp, eps 0.02) of csg_path on the model and of Mitsuba's path on the mesh.
+
+`--indirect`: the same costs where the derivative is all indirect: a floor lit only by a
+sunlit wall strip above it (the sun travels level with the floor), a dark sphere between
+them out of view, its radius differentiated, max_depth 3. csg_prb_projective with and
+without its indirect term (`sppi`), and with `--mesh` Mitsuba's prb_projective on the
+sphere's mesh (its projective sampling of indirect discontinuities).
 """
 from __future__ import annotations
 
@@ -37,6 +43,79 @@ def scene_dict(mi, csg, model, integrator, size, spp, mesh_file=None, face_norma
                                 "sample_border": mesh_file is not None},
                        "sampler": {"type": "independent", "sample_count": spp}},
             "object": shape, "lamp": {"type": "point", "position": [4, -6, 3], "intensity": 60.0}}
+
+
+def indirect_scene_dict(mi, csg, model, integrator, size, spp, mesh_file=None):
+    """The floor lit only by what a sunlit wall strip reflects; the model between them, out
+    of the camera's view (`integrator`: a dict)."""
+    width, height = size
+    shape = ({"type": "csg", "model": csg.model_ref(model)} if mesh_file is None
+             else {"type": "ply", "filename": str(mesh_file)})
+    shape["bsdf"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.1, 0.08, 0.05]}}
+    return {"type": "scene", "integrator": {"max_depth": 3, **integrator},
+            "sensor": {"type": "perspective", "fov": 40,
+                       "to_world": mi.ScalarTransform4f().look_at([0, -2.5, 5], [0, -1, 0], [0, 0, 1]),
+                       "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
+                                "sample_border": mesh_file is not None},
+                       "sampler": {"type": "independent", "sample_count": spp}},
+            "object": shape,
+            "floor": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": 0.7},
+                      "to_world": mi.ScalarTransform4f().scale([4, 4, 1])},
+            "wall": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": 0.9},
+                     "to_world": mi.ScalarTransform4f().translate([0, 2.5, 2.6]).rotate([1, 0, 0], 90)
+                     .scale([4, 0.9, 1])},
+            "sun": {"type": "directional", "direction": [0, 1, 0], "irradiance": 20.0}}
+
+
+def indirect_costs(mi, dr, csg, save_mesh, size, spp, repeats, mesh):
+    """Rows: seconds of the primal frame and of a gradient iteration (the sphere's radius) in
+    the indirect scene."""
+    model = csg.Sphere(0.6).translate((0, 1.5, 0.9))
+
+    def load(integrator, mesh_file=None):
+        return mi.load_dict(indirect_scene_dict(mi, csg, model, integrator, size, spp, mesh_file))
+    primal = load({"type": "csg_path"})
+    target = mi.render(primal, spp=spp, seed=0)
+
+    def time_primal():
+        dr.eval(mi.render(primal, spp=spp, seed=1))
+        dr.sync_thread()
+    primal_s = common.best_of(time_primal, repeats)["min_s"]
+    rows = [{"integrator": "csg_path (primal)", "seconds": primal_s, "ratio": 1.0}]
+    routes = [("csg_prb", {"type": "csg_prb"}, "object.primitive_scale"),
+              ("csg_prb_projective, sppi 0", {"type": "csg_prb_projective", "sppi": 0}, "object.primitive_scale"),
+              ("csg_prb_projective", {"type": "csg_prb_projective"}, "object.primitive_scale")]
+    for name, integrator, key in routes:
+        scene = load(integrator)
+        run = _gradient_iteration(mi, dr, scene, key, mi.Float([1.0]), target, spp)
+        seconds = common.best_of(run, repeats)["min_s"]
+        rows.append({"integrator": name, "seconds": seconds, "ratio": seconds / primal_s})
+    if mesh:
+        with tempfile.TemporaryDirectory() as tmp:
+            ply = Path(tmp) / "model.ply"
+            save_mesh(csg.to_mesh(model, segments=64), ply)
+            scene = load({"type": "prb_projective"}, ply)
+            positions = mi.Float(mi.traverse(scene)["object.vertex_positions"])
+            run = _gradient_iteration(mi, dr, scene, "object.vertex_positions", positions, target, spp)
+            seconds = common.best_of(run, 1)["min_s"]
+            rows.append({"integrator": "prb_projective on the mesh", "seconds": seconds, "ratio": seconds / primal_s})
+    return rows
+
+
+def _gradient_iteration(mi, dr, scene, key, value, target, spp):
+    """One optimization iteration: render with `key` attached, backward from the image loss."""
+    params = mi.traverse(scene)
+
+    def run():
+        v = type(value)(value)
+        dr.enable_grad(v)
+        params[key] = v
+        params.update()
+        image = mi.render(scene, params, spp=spp, seed=1)
+        dr.backward(dr.mean(dr.square(image - target), axis=None))
+        dr.eval(dr.grad(v))
+        dr.sync_thread()
+    return run
 
 
 def accuracy(mi, dr, csg, save_mesh, spp=256, fd_spp=4096, eps=0.02, size=(64, 48)):
@@ -101,6 +180,8 @@ def main(argv=None):
     parser.add_argument("--mesh", action="store_true", help="also time prb_projective on the mesh (slow)")
     parser.add_argument("--accuracy", action="store_true",
                         help="also compare gradient images with finite differences (64x48, slow)")
+    parser.add_argument("--indirect", action="store_true",
+                        help="also time a scene whose derivative is all indirect (max_depth 3)")
     args = common.parse_args(parser, argv)
     import drjit as dr
     import mitsuba as mi
@@ -120,18 +201,7 @@ def main(argv=None):
     rows.append({"integrator": "csg_path (primal)", "seconds": primal_s, "ratio": 1.0})
 
     def gradient_iteration(scene, key, value):
-        params = mi.traverse(scene)
-
-        def run():
-            v = type(value)(value)
-            dr.enable_grad(v)
-            params[key] = v
-            params.update()
-            image = mi.render(scene, params, spp=args.spp, seed=1)
-            dr.backward(dr.mean(dr.square(image - target), axis=None))
-            dr.eval(dr.grad(v))
-            dr.sync_thread()
-        return run
+        return _gradient_iteration(mi, dr, scene, key, value, target, args.spp)
 
     for name in ("csg_prb", "csg_prb_projective"):
         scene = mi.load_dict(scene_dict(mi, csg, model, name, size, args.spp))
@@ -151,6 +221,12 @@ def main(argv=None):
     print(common.table(rows, [("integrator", "integrator", "s"), ("seconds", "s / iteration", ".3f"),
                               ("ratio", "x primal", ".1f")]))
     result = {"machine": common.machine(), "size": args.size, "spp": args.spp, "rows": rows}
+    if args.indirect:
+        result["indirect"] = indirect_costs(mi, dr, csg, save_mesh, size, args.spp, args.repeats, args.mesh)
+        print(f"\nOne gradient iteration where the derivative is all indirect (a sphere's radius), {args.size}, "
+              f"{args.spp} spp")
+        print(common.table(result["indirect"], [("integrator", "integrator", "s"), ("seconds", "s / iteration", ".3f"),
+                                                ("ratio", "x primal", ".1f")]))
     if args.accuracy:
         result["accuracy"] = accuracy(mi, dr, csg, save_mesh)
         print("\nGradient images of a hole's x position (64x48) against finite differences")

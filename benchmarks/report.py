@@ -265,7 +265,8 @@ def main():
     if gradient:
         m = gradient["machine"]
         out += ["## Cost of a gradient iteration", "",
-                f"`./run.sh bench gradient_cost.py --mesh{' --accuracy' if gradient.get('accuracy') else ''}` ({m['date']}, `{m['variant']}`): a box minus a sphere, "
+                f"`./run.sh bench gradient_cost.py --mesh{' --accuracy' if gradient.get('accuracy') else ''}"
+                f"{' --indirect' if gradient.get('indirect') else ''}` ({m['date']}, `{m['variant']}`): a box minus a sphere, "
                 f"the sphere's radius differentiated, {gradient['size']} at {gradient['spp']} spp; one iteration is "
                 "a render with the parameter attached plus `dr.backward` of an image loss, against the primal "
                 "`csg_path` frame, and Mitsuba's `prb_projective` on the manifold3d mesh (vertex positions "
@@ -286,6 +287,16 @@ def main():
                     "", "| route | gradient sum | / FD of the model | correlation |", "|---|---|---|---|"]
             for r in gradient["accuracy"]:
                 out.append(f"| {r['route']} | {r['sum']:.3f} | {r['ratio']:.3f} | {r['correlation']:.3f} |")
+            out.append("")
+        if gradient.get("indirect"):
+            out += ["Where the derivative is all indirect (`--indirect`, same run and size): a floor lit only by "
+                    "a sunlit wall strip above it (the sun travels level with the floor), a dark sphere between "
+                    "them out of view, its radius differentiated, max_depth 3. `sppi 0` leaves out "
+                    "csg_prb_projective's indirect term (the curves seen from the surfaces the camera sees); "
+                    "Mitsuba's `prb_projective` on the sphere's mesh samples indirect discontinuities "
+                    "projectively.", "", "| integrator | s / iteration | x primal |", "|---|---|---|"]
+            for r in gradient["indirect"]:
+                out.append(f"| {r['integrator']} | {r['seconds']:.3f} | {r['ratio']:.1f} |")
             out.append("")
     if (common.ROOT / "docs" / "images" / "scaling.png").exists():
         out += ["## Scaling", "", "`./run.sh bench scaling.py`: optimized trace time against primitive count "

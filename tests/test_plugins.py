@@ -857,7 +857,8 @@ def test_the_media_example_scene_renders_its_ink(tmp_path):
     assert centre(ROOT / "scenes" / "ink_glass.xml") > 1.2 * centre(clear)
 
 
+@pytest.mark.parametrize("name", ["sppc", "sppp", "sppi"])
 @pytest.mark.parametrize("value", [-1, 1.5, True])
-def test_csg_prb_projective_sample_counts_must_be_non_negative_integers(value):
-    with pytest.raises(Exception, match="sppp"):
-        mi.load_dict({"type": "csg_prb_projective", "sppp": value})
+def test_csg_prb_projective_sample_counts_must_be_non_negative_integers(name, value):
+    with pytest.raises(Exception, match=name):
+        mi.load_dict({"type": "csg_prb_projective", name: value})

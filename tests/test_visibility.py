@@ -27,11 +27,11 @@ BSDF = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.6, 0.
 
 
 def scene_dict(model, integrator, spp, size=(64, 48), target=(0, 0, 0), fov=40, backdrop=False, lamp=CAMERA,
-               floor=False, sun=None, light=None, blocker=None):
+               floor=False, sun=None, light=None, blocker=None, camera=CAMERA, wall=False, extra=None):
     scene = {
         "type": "scene", "integrator": integrator,
         "sensor": {"type": "perspective", "fov": fov,
-                   "to_world": mi.ScalarTransform4f().look_at(CAMERA, list(target), [0, 0, 1]),
+                   "to_world": mi.ScalarTransform4f().look_at(list(camera), list(target), [0, 0, 1]),
                    "film": {"type": "hdrfilm", "width": size[0], "height": size[1], "rfilter": {"type": "box"},
                             "sample_border": True},
                    "sampler": {"type": "independent", "sample_count": spp}},
@@ -48,6 +48,18 @@ def scene_dict(model, integrator, spp, size=(64, 48), target=(0, 0, 0), fov=40, 
         scene["blocker"] = {"type": blocker, "bsdf": {"type": "diffuse", "reflectance": 0.5},
                             "to_world": mi.ScalarTransform4f().translate([-0.4, 0.5, 1.6])
                             .rotate([0.8944272, 0.4472136, 0], 30).scale(0.25)}
+    if wall:
+        # Light that reaches the floor only by reflection: a white strip of wall above it
+        # (y = 2.5, z from 1.7 to 3.5, facing -y), lit by a sun that travels level with the
+        # floor (which it therefore does not light), and a dark model.
+        scene["lamp"] = {"type": "directional", "direction": [0, 1, 0], "irradiance": 20.0}
+        scene["wall"] = {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": 0.9},
+                         "to_world": mi.ScalarTransform4f().translate([0, 2.5, 2.6]).rotate([1, 0, 0], 90)
+                         .scale([4, 0.9, 1])}
+        scene["object"]["bsdf"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.1, 0.08, 0.05]}}
+        floor = 4.0
+    if extra is not None:
+        scene.update(extra())                    # a function, as `light`
     if floor:
         # A grey floor at z = 0 under the model, for shadows cast by a lamp away from the camera
         # (`floor`: True, or its half size).
@@ -68,8 +80,8 @@ def scene(model, integrator, spp, size=(64, 48), **view):
     return mi.load_dict(scene_dict(model, integrator, spp, size, **view))
 
 
-def forward_gradient(model, integrator, key, weights, spp, size, **view):
-    sc = scene(model, {"type": integrator, "max_depth": 2}, spp, size, **view)
+def forward_gradient(model, integrator, key, weights, spp, size, max_depth=2, options=None, **view):
+    sc = scene(model, {"type": integrator, "max_depth": max_depth, **(options or {})}, spp, size, **view)
     params = mi.traverse(sc)
     base = np.array(params[key])
     h = mi.Float(0.0)
@@ -81,8 +93,8 @@ def forward_gradient(model, integrator, key, weights, spp, size, **view):
     return dr.grad(image).numpy()
 
 
-def finite_difference(model, key, weights, spp, size, eps, **view):
-    sc = scene(model, {"type": "csg_path", "max_depth": 2}, spp, size, **view)
+def finite_difference(model, key, weights, spp, size, eps, max_depth=2, **view):
+    sc = scene(model, {"type": "csg_path", "max_depth": max_depth}, spp, size, **view)
     base = np.array(mi.traverse(sc)[key])
 
     def at(v):
@@ -93,12 +105,14 @@ def finite_difference(model, key, weights, spp, size, eps, **view):
     return (at(eps) - at(-eps)) / (2 * eps)
 
 
-def check(model, key, weights, spp=256, fd_spp=4096, size=(64, 48), eps=0.02, tolerance=0.05, **view):
+def check(model, key, weights, spp=256, fd_spp=4096, size=(64, 48), eps=0.02, tolerance=0.05, max_depth=2,
+          options=None, **view):
+    """`options`: csg_prb_projective's own parameters."""
     key = f"object.{key}"
     weights = np.asarray(weights, np.float32)
-    fd = finite_difference(model, key, weights, fd_spp, size, eps, **view)
-    ours = forward_gradient(model, "csg_prb_projective", key, weights, spp, size, **view)
-    interior = forward_gradient(model, "csg_prb", key, weights, spp, size, **view)
+    fd = finite_difference(model, key, weights, fd_spp, size, eps, max_depth, **view)
+    ours = forward_gradient(model, "csg_prb_projective", key, weights, spp, size, max_depth, options, **view)
+    interior = forward_gradient(model, "csg_prb", key, weights, spp, size, max_depth, **view)
     allowed = max(tolerance * abs(fd.sum()), 0.01 * np.abs(fd).sum())
     assert abs(ours.sum() - fd.sum()) < allowed, (ours.sum(), fd.sum(), np.abs(fd).sum())
     assert np.sign(ours.sum()) == np.sign(fd.sum())
@@ -424,6 +438,40 @@ def test_shadow_of_a_mitsuba_shape_on_a_moving_csg_shape(blocker):
 PRISM = csg.Prism(6, 1.0, 2.0).rotate((0, 0, 1), 10) - csg.Sphere(0.6).translate((0.9, -0.5, 0.3))
 
 
+# The camera sees only the floor of the `wall` scene (the model and the wall out of view).
+INDIRECT_VIEW = {"camera": (0.0, -2.5, 5.0), "target": (0.0, -1.0, 0.0), "wall": True}
+
+
+def _black_box():
+    """A black Mitsuba cube standing on the floor between the floor in view and the wall."""
+    return {"blocker": {"type": "cube", "bsdf": {"type": "diffuse", "reflectance": 0.0},
+                        "to_world": mi.ScalarTransform4f().translate([0, 1.2, 0.75]).scale([0.6, 0.3, 0.45])}}
+
+
+@pytest.mark.parametrize("model, weights, extra, size, spp", [
+    (csg.Sphere(0.6).translate((0, 1.5, 0.9)), [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], None, (48, 36), 1024),
+    (csg.Sphere(0.6).translate((0, 1.5, 0.9)), [0] * 11 + [1], None, (48, 36), 1024),
+    # a box with a notch cut into its top front edge (the notch's radius): the CSG edges in
+    # the outline the floor sees against the wall
+    (csg.Box((1.4, 0.4, 1.0)).translate((0, 1.4, 0.9)) - csg.Sphere(0.3).translate((0.1, 1.2, 1.4)),
+     [0] * 12 + [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], None, (48, 36), 1024),
+    # the floor itself a csg slab, rising (the point the camera sees moves): the edges of a
+    # Mitsuba cube and of the wall move relative to it (a weak change: larger pixels, more
+    # samples)
+    (csg.Box((8.0, 8.0, 0.2)), [0] * 11 + [1], _black_box, (24, 18), 4096),
+], ids=["sphere radius", "sphere z", "notch radius", "rising floor"])
+def test_indirect_shadows_move(model, weights, extra, size, spp):
+    """The floor, lit only by light the wall reflects, seen from above; a dark model (or a
+    black cube) between them casts a soft indirect shadow. Before the indirect term (as
+    csg_prb) the summed gradients were +50.2 against central differences -755.3 for the
+    sphere's radius, -15.8 against -425.3 for its height (its reflected light only), 0
+    against 36.4 for the rising floor. The camera sees no curve and no shadow, so the
+    primary and shadow terms are off (they gave exactly csg_prb's image here)."""
+    ratio, _ = check(model, "primitive_to_world", weights, spp=spp, fd_spp=65536, size=size, max_depth=3,
+                     options={"sppp": 0}, extra=extra, **INDIRECT_VIEW)
+    assert not abs(ratio - 1) < 0.5, ratio
+
+
 @pytest.mark.parametrize("key, weights", [("primitive_rotation", [0, 0, 1, 0, 0, 0]),
                                           ("primitive_to_world", [0] * 15 + [1] + [0] * 8),
                                           ("primitive_scale", [0, 1])],
@@ -548,16 +596,20 @@ def test_sphere_against_prb_projective_on_its_mesh(parameter, tmp_path):
     assert np.corrcoef(ours.ravel(), mesh.ravel())[0, 1] >= 0.95
 
 
-def test_backward_mode_gives_the_forward_derivative():
-    """The adjoint of the boundary term: dr.backward of a weighted image sum, dotted with a
+@pytest.mark.parametrize("model, weights, max_depth, options, view", [
+    (HOLE, [0] * 12 + [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], 2, None, {}),       # the hole's radius
+    (csg.Sphere(0.6).translate((0, 1.5, 0.9)), [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], 3, {"sppp": 0},
+     INDIRECT_VIEW),                                                               # the indirect term
+], ids=["primary", "indirect"])
+def test_backward_mode_gives_the_forward_derivative(model, weights, max_depth, options, view):
+    """The adjoint of the boundary terms: dr.backward of a weighted image sum, dotted with a
     direction, equals the forward derivative along it (same samples)."""
     key = "object.primitive_to_world"
-    weights = np.zeros(24, np.float32)
-    weights[[12, 17, 22]] = 1.0                                  # the hole's radius
+    weights = np.asarray(weights, np.float32)
     rng = np.random.default_rng(0)
     mask = mi.TensorXf(rng.uniform(0, 1, (48, 64, 3)).astype(np.float32))
-    forward = forward_gradient(HOLE, "csg_prb_projective", key, weights, 64, (64, 48))
-    sc = scene(HOLE, {"type": "csg_prb_projective", "max_depth": 2}, 64)
+    forward = forward_gradient(model, "csg_prb_projective", key, weights, 64, (64, 48), max_depth, options, **view)
+    sc = scene(model, {"type": "csg_prb_projective", "max_depth": max_depth, **(options or {})}, 64, **view)
     params = mi.traverse(sc)
     value = mi.Float(params[key])
     dr.enable_grad(value)
