@@ -6,6 +6,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mitsuba_csg.engine.backend import owned
+
 from . import csg_edges
 from .csg_common import SceneCSG
 from .csg_prb import CSGPRBIntegrator
@@ -242,15 +244,18 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         shape_of = np.concatenate([np.full(c.count, s, np.uint32) for s, c in enumerate(curves)])
         weights = np.concatenate([c.weight(viewpoint) for c in curves])
         data = np.concatenate([c.data for c in curves])
-        distribution = mi.DiscreteDistribution(mi.Float(weights.astype(np.float32)))
+        # Tables in memory Dr.Jit owns (`owned`): one mapped from numpy puts its alignment into
+        # the kernel, and the kernels that trace paths from them were compiled anew each call.
+        distribution = mi.DiscreteDistribution(owned(mi.Float, weights.astype(np.float32)))
         with dr.suspend_grad():
             index, u, pmf = distribution.sample_reuse_pmf(sampler.next_1d())
-        kind = dr.gather(mi.UInt32, mi.UInt32(np.concatenate([c.kind for c in curves])), index)
-        a = dr.gather(mi.UInt32, mi.UInt32(np.concatenate([c.a for c in curves])), index)
-        b = dr.gather(mi.UInt32, mi.UInt32(np.concatenate([c.b for c in curves])), index)
-        extra = dr.gather(mi.UInt32, mi.UInt32(np.concatenate([c.extra for c in curves])), index)
-        solid = dr.gather(mi.UInt32, mi.UInt32(shape_of), index)
-        data = [dr.gather(mi.Float, mi.Float(np.ascontiguousarray(data[:, k])), index) for k in range(data.shape[1])]
+        kind = dr.gather(mi.UInt32, owned(mi.UInt32, np.concatenate([c.kind for c in curves])), index)
+        a = dr.gather(mi.UInt32, owned(mi.UInt32, np.concatenate([c.a for c in curves])), index)
+        b = dr.gather(mi.UInt32, owned(mi.UInt32, np.concatenate([c.b for c in curves])), index)
+        extra = dr.gather(mi.UInt32, owned(mi.UInt32, np.concatenate([c.extra for c in curves])), index)
+        solid = dr.gather(mi.UInt32, owned(mi.UInt32, shape_of), index)
+        data = [dr.gather(mi.Float, owned(mi.Float, np.ascontiguousarray(data[:, k])), index)
+                for k in range(data.shape[1])]
         if view is None:
             view = _point(viewpoint)
 
@@ -626,12 +631,12 @@ def _sample_static(scene, csg, static, viewpoint, sampler, scale, view):
     """Points on the curves of Mitsuba's shapes (`csg_edges.StaticCurves`) that the lamp `view`
     (per lane) sees, sampled in proportion to their length over their distance from
     `viewpoint`: the tuple of `_sample_curves`, x detached (they do not move)."""
-    distribution = mi.DiscreteDistribution(mi.Float(static.weight(viewpoint).astype(np.float32)))
+    distribution = mi.DiscreteDistribution(owned(mi.Float, static.weight(viewpoint).astype(np.float32)))
     with dr.suspend_grad():
         index, u, pmf = distribution.sample_reuse_pmf(sampler.next_1d())
 
         def column(values, kind=mi.Float):
-            return dr.gather(kind, kind(np.ascontiguousarray(values)), index)
+            return dr.gather(kind, owned(kind, np.ascontiguousarray(values)), index)
         kind, extra = column(static.kind, mi.UInt32), column(static.extra, mi.UInt32)
         m = mi.Matrix3f(*[column(static.to_world[:, i, j]) for i in range(3) for j in range(3)])
         t = mi.Vector3f(*[column(static.to_world[:, i, 3]) for i in range(3)])
