@@ -270,10 +270,12 @@ def main():
                 f"the sphere's radius differentiated, {gradient['size']} at {gradient['spp']} spp; one iteration is "
                 "a render with the parameter attached plus `dr.backward` of an image loss, against the primal "
                 "`csg_path` frame, and Mitsuba's `prb_projective` on the manifold3d mesh (vertex positions "
-                "differentiated) where measured.", "", "| integrator | s / iteration | x primal |", "|---|---|---|"]
-        for r in gradient["rows"]:
-            out.append(f"| {r['integrator']} | {r['seconds']:.3f} | {r['ratio']:.1f} |")
-        out.append("")
+                "differentiated) where measured.", ""]
+
+        def iteration_table(rows):
+            return (["| integrator | s / iteration | x primal |", "|---|---|---|"]
+                    + [f"| {r['integrator']} | {r['seconds']:.3f} | {r['ratio']:.1f} |" for r in rows] + [""])
+        out += iteration_table(gradient["rows"])
         if gradient.get("accuracy"):
             out += ["Gradient images against finite differences (`--accuracy`, same run, 64x48): a hole cut "
                     "into the top face only (sphere of radius 0.5 at (0.3, -0.2, 0.9)), moved along x, so "
@@ -294,10 +296,8 @@ def main():
                     "them out of view, its radius differentiated, max_depth 3. `sppi 0` leaves out "
                     "csg_prb_projective's indirect term (the curves seen from the surfaces the camera sees); "
                     "Mitsuba's `prb_projective` on the sphere's mesh samples indirect discontinuities "
-                    "projectively.", "", "| integrator | s / iteration | x primal |", "|---|---|---|"]
-            for r in gradient["indirect"]:
-                out.append(f"| {r['integrator']} | {r['seconds']:.3f} | {r['ratio']:.1f} |")
-            out.append("")
+                    "projectively.", ""]
+            out += iteration_table(gradient["indirect"])
     if (common.ROOT / "docs" / "images" / "scaling.png").exists():
         out += ["## Scaling", "", "`./run.sh bench scaling.py`: optimized trace time against primitive count "
                 "(640x360) and against image size (Cheese-1000).", "", "![scaling](images/scaling.png)", ""]
