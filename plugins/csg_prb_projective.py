@@ -493,7 +493,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
 
     def to_string(self):
         return (f"CSGPRBProjectiveIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
-                f"sppc={self.sppc}, sppp={self.sppp}]")
+                f"sppc={self.sppc}, sppp={self.sppp}, sppi={self.sppi}]")
 
 
 # A directional light's curves are seen from a point this many scene sizes up its beam:
