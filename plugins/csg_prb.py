@@ -53,9 +53,15 @@ class CSGPRBIntegrator(RBIntegrator):
 
     @dr.syntax
     def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
-               δL, state_in, active: mi.Bool, **kwargs):
+               δL, state_in, active: mi.Bool, max_depth=None, hide_first_emitter=None, **kwargs):
+        """Mitsuba's `sample`; `max_depth` and `hide_first_emitter` (the integrator's
+        `max_depth` and `hide_emitters` unless given) let csg_prb_projective trace paths that
+        continue one from a surface point (one bounce shorter, the emitter their first ray
+        meets left out)."""
         primal = mode == dr.ADMode.Primal
-        if dr.hint(self.max_depth == 0, mode="scalar"):   # as Mitsuba's path tracers: nothing at all
+        max_depth = self.max_depth if max_depth is None else max_depth
+        hide_first = self.hide_emitters if hide_first_emitter is None else hide_first_emitter
+        if dr.hint(max_depth == 0, mode="scalar"):   # as Mitsuba's path tracers: nothing at all
             nothing = mi.Spectrum(0)
             return nothing, dr.zeros(mi.Bool, dr.width(ray.d)), [], nothing
         csg = SceneCSG(scene)
@@ -73,7 +79,7 @@ class CSGPRBIntegrator(RBIntegrator):
         bsdf_pdf_prev = mi.Float(1.0)
         bsdf_delta_prev = mi.Bool(True)
 
-        while dr.hint(active, max_iterations=self.max_depth, label=f"csg_prb ({mode.name})"):
+        while dr.hint(active, max_iterations=max_depth, label=f"csg_prb ({mode.name})"):
             active_next = mi.Bool(active)
             with dr.resume_grad(when=not primal):
                 si, bsdf, _, _, _ = csg.intersect(scene, ray, active, attached=not primal)
@@ -82,12 +88,12 @@ class CSGPRBIntegrator(RBIntegrator):
             ds = mi.DirectionSample3f(scene, si=si, ref=si_prev)
             mis = mis_weight(bsdf_pdf_prev, scene.pdf_emitter_direction(si_prev, ds, ~bsdf_delta_prev))
             # hide_emitters: emitters seen directly by the camera give nothing (as in csg_path)
-            seen = active_next & ~((depth == 0) & self.hide_emitters)
+            seen = active_next & ~((depth == 0) & hide_first)
             with dr.resume_grad(when=not primal):
                 Le = β * mis * ds.emitter.eval(si, seen)
 
             # ---------------------- Emitter sampling ----------------------
-            active_next &= (depth + 1 < self.max_depth) & si.is_valid()
+            active_next &= (depth + 1 < max_depth) & si.is_valid()
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active_em)
             active_em &= ds.pdf != 0.0

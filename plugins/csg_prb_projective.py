@@ -189,18 +189,20 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         block.set_coalesce(block.coalesce() and min(s for s in (spp, spp_indirect) if s > 0) >= 4)
         # The curves, listed once; each viewpoint (the camera, each light) only weighs them.
         curves = [csg_edges.Curves(shape) for shape in csg.csg]
+        # Mitsuba's shapes stand still, but their shadows on moving csg shapes move, and so
+        # do they relative to a moving csg surface that sees them.
+        static = csg_edges.StaticCurves(scene) if csg.has_others else None
+        static = static if static is not None and static.count else None
         terms = []
         if spp > 0:
             sampler, spp = self.prepare(sensor, 0xFFFFFFFF ^ seed, spp, [])
             spectrum = self._wavelengths(sensor, sampler)
             terms.append(self._primary_term(scene, sensor, csg, curves, camera, sampler, spp, *spectrum))
             if self.max_depth >= 2:                 # else no light reaches a surface the camera sees
-                # Mitsuba's meshes stand still, but their shadows on moving csg shapes move.
-                static = csg_edges.StaticCurves(scene) if csg.has_others else None
                 for source in _shadow_sources(scene, sampler, camera):
                     terms.append(self._shadow_term(scene, sensor, csg, curves, camera, source, sampler, spp,
                                                    *spectrum))
-                    if static is not None and static.count:
+                    if static is not None:
                         terms.append(self._shadow_term(scene, sensor, csg, static, camera, source, sampler, spp,
                                                        *spectrum))
             terms = [(*term, spectrum[0]) for term in terms if term is not None]
@@ -208,13 +210,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             # A sampler of its own (forked, seeded apart): one lane per pixel sample.
             sampler, spp_indirect = self.prepare(sensor, 0x9E3779B9 ^ seed, spp_indirect, [])
             spectrum = self._wavelengths(sensor, sampler)
-            casters = [curves]
-            if csg.has_others:
-                # Mitsuba's shapes stand still, but move relative to a moving csg surface.
-                static = csg_edges.StaticCurves(scene)
-                if static.count:
-                    casters.append(static)
-            for caster in casters:
+            for caster in [curves] if static is None else [curves, static]:
                 term = self._indirect_term(scene, sensor, csg, caster, camera, sampler, spp_indirect, *spectrum)
                 if term is not None:
                     terms.append((*term, spectrum[0]))
@@ -303,15 +299,10 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             sample.p, sample.silhouette_d, sample.n = y_d, tangent, normal
             jacobian = mi.ad.ProjectiveDetail.sensor_jacobian(None, sensor, sample)
             offset = offset * dr.norm(y_d - cam)
-            delta = mi.Spectrum(0)
             if radiance is None:
                 def radiance(target, active):
                     return self._radiance(scene, sampler, cam, target, wavelengths, active)
-            for factor, scale in EXTRAPOLATION:
-                inside = radiance(y_d - factor * offset * normal, valid)
-                outside = radiance(y_d + factor * offset * normal, valid)
-                delta += scale * (inside - outside)
-            delta *= wavelength_weight
+            delta = _jump(radiance, y_d, normal, offset, valid) * wavelength_weight
             valid &= dr.any(delta != 0)
             weight = delta * jacobian / pdf / spp
         # Moving the curve by v . n in the image replaces the outside radiance by the inside.
@@ -455,13 +446,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             valid &= (speed > 0) & (sine > 0) & dr.isfinite(pdf) & (pdf > 0) & (distance > 0)
             reflected = bsdf.eval(mi.BSDFContext(), si, si.to_local(w), valid)    # f cos
             valid &= dr.any(reflected != 0)
-            offset = INDIRECT_OFFSET * distance
-            delta = mi.Spectrum(0)
-            for factor, scale in EXTRAPOLATION:
-                inside = self._reflected_radiance(scene, sampler, si, x_d - factor * offset * normal, valid)
-                outside = self._reflected_radiance(scene, sampler, si, x_d + factor * offset * normal, valid)
-                delta += scale * (inside - outside)
-            delta *= wavelength_weight
+            def radiance(target, active):
+                return self._reflected_radiance(scene, sampler, si, target, active)
+            delta = _jump(radiance, x_d, normal, INDIRECT_OFFSET * distance, valid) * wavelength_weight
             valid &= dr.any(delta != 0)
             weight = ray_weight * reflected * delta * sine / (dr.square(distance) * pdf * spp)
             weight = dr.select(valid, weight, 0)
@@ -476,13 +463,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         # Aimed from the origin spawn_ray moved off the surface: from p itself the ray would
         # pass the curve that far to one side, which offsets close to it cannot afford.
         ray.d = dr.normalize(target - ray.o)
-        depth, hide = self.max_depth, self.hide_emitters
-        self.max_depth = depth if depth == 0xFFFFFFFF else depth - 1
-        self.hide_emitters = True          # as `sample` hides emitters its first ray meets
-        try:
-            L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, active)
-        finally:
-            self.max_depth, self.hide_emitters = depth, hide
+        depth = self.max_depth if self.max_depth == 0xFFFFFFFF else self.max_depth - 1
+        L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, active, max_depth=depth,
+                                 hide_first_emitter=True)
         return dr.select(active, L, 0)
 
     def _radiance(self, scene, sampler, origin, target, wavelengths, active):
@@ -551,6 +534,18 @@ def _shadow_sources(scene, sampler, camera):
                 sources.append(_Source(centre + np.array([0.0, 0.0, far]), it.p + ds.d * far, -ds.d,
                                        _infinite_incident(ds.d, weight)))
     return sources
+
+
+def _jump(radiance, x, normal, offset, active):
+    """The jump of `radiance(target, active)` across the curve point x: the side towards
+    -normal minus the side towards +normal, from targets either side at `offset` and 4
+    `offset`, extrapolated to the curve (EXTRAPOLATION)."""
+    jump = mi.Spectrum(0)
+    for factor, scale in EXTRAPOLATION:
+        inside = radiance(x - factor * offset * normal, active)
+        outside = radiance(x + factor * offset * normal, active)
+        jump += scale * (inside - outside)
+    return jump
 
 
 def _point(where):
