@@ -15,7 +15,7 @@ import numpy as np
 from .engine import layout as K
 from .engine.automaton import traverse
 from .engine.backend import Backend, default_backend, owned
-from .engine.device import KernelTree, TraversalOptions, node_record, scene_rays, upload
+from .engine.device import KernelTree, TraversalOptions, node_record, opaque, scene_rays, upload
 from .engine.hit_geometry import hit_normal
 from .engine.lowering import FlatTree, lower
 from .engine.optimize import OptimizedModel
@@ -87,10 +87,10 @@ class RayHits:
     info: object = None  # UInt32: class, flip bit and face of the hit (engine.layout)
 
 
-def _broadcast_opaque(b, value: float, n: int):
+def _broadcast_opaque(tree: KernelTree, value: float, n: int):
     # One opaque value read by every lane: a width-n opaque array would be filled in memory
     # (a memset kernel per call), a literal would be compiled into the kernel.
-    return dr.opaque(b.Float, value) + dr.zeros(b.Float, n)
+    return opaque(tree, tree.b.Float, float(value)) + dr.zeros(tree.b.Float, n)
 
 
 def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen: bool = False,
@@ -135,8 +135,8 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen:
     n = max(dr.width(o), dr.width(d), dr.width(tmin), dr.width(tmax), dr.width(active),
             1 if start_prim is None else dr.width(start_prim))
     # Opaque: a literal would be compiled into the kernel, and every new value would recompile it.
-    tmin = _broadcast_opaque(b, tmin, n) if isinstance(tmin, (int, float)) else b.Float(dr.detach(tmin))
-    tmax = _broadcast_opaque(b, tmax, n) if isinstance(tmax, (int, float)) else b.Float(dr.detach(tmax))
+    tmin = _broadcast_opaque(tree, tmin, n) if isinstance(tmin, (int, float)) else b.Float(dr.detach(tmin))
+    tmax = _broadcast_opaque(tree, tmax, n) if isinstance(tmax, (int, float)) else b.Float(dr.detach(tmax))
     active = True if active is None else b.Bool(dr.detach(active))
     if start_prim is not None:
         start_prim = b.UInt32(dr.detach(start_prim))
@@ -191,6 +191,8 @@ def _replay(prepared: Prepared, o, d, tmin, tmax) -> RayHits:
     if replay is None:
         if len(prepared.replays) >= _MAX_REPLAYS:
             prepared.replays.pop(next(iter(prepared.replays)))
+        for value in key[1:]:     # made outside the recording, which replays without making them
+            opaque(prepared.tree, b.Float, value)
         replay = prepared.replays[key] = dr.freeze(lambda o, d: trace_rays(prepared, o, d, key[1], key[2]))
     return replay(o, d)
 

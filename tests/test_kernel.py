@@ -36,6 +36,7 @@ TRAVERSALS = {
     "no_bound": TraversalOptions(bounded_search=False),
     "no_near_first": TraversalOptions(near_first=False),
     "no_sets": TraversalOptions(sets=False),
+    "small_sets": TraversalOptions(min_set_size=2),      # unions of 2 and 3 leaves walked as sets too
     "no_pass_through": TraversalOptions(pass_through=False),
     "none": TraversalOptions(*[False] * 6),
 }
@@ -537,6 +538,37 @@ def test_new_tmin_values_do_not_recompile():
     # kernel an earlier run left in the disk cache).
     assert len(history) == 4 and len({h["hash"] for h in history}) == 1, [
         {k: h.get(k) for k in ("hash", "cache_hit", "cache_disk", "operation_count", "size")} for h in history]
+
+
+def test_each_loop_body_is_recorded_once(capfd):
+    """Dr.Jit records a symbolic loop's body a second time when its state holds variables the
+    body never changes, and a nested loop is then recorded once per recording of the loop
+    around it: every trace paid that in Python. Dr.Jit's debug log names each re-recording;
+    a trace with every kind of loop (sets, convex planes, a torus, a mesh, a start hint) has none."""
+    import drjit as dr
+    import manifold3d as m3
+    holes = csg.union(*(csg.Sphere(0.3).translate((0.5 * i - 1, 0, 0)) for i in range(5)))
+    model = ((csg.Box(3.0) - holes) | csg.Torus(1.0, 0.2).translate((0, 0, 2)) | csg.Prism(6, 0.5, 1.0).translate((0, 2, 0))
+             | csg.Mesh.from_manifold(m3.Manifold.sphere(0.5, 16)).translate((2.5, 0, 0)))
+    prepared = csg.prepare(model)
+    rng = np.random.default_rng(2)
+    o, d = rng.uniform(-4, 4, (64, 3)), rng.normal(size=(64, 3))
+    b = prepared.tree.b
+    O, D = csg.rays_to_device(o, b), csg.rays_to_device(d, b)
+    first = csg.trace_rays(prepared, O, D)
+    dr.eval(first.prim)
+    capfd.readouterr()
+    level = dr.log_level()
+    dr.set_log_level(dr.LogLevel.Debug)
+    try:
+        again = csg.trace_rays(prepared, O, D, start_prim=first.prim)
+    finally:
+        dr.set_log_level(level)
+    captured = capfd.readouterr()        # Dr.Jit logs to stderr, or to stdout through Python's
+    log = captured.out + captured.err     # print where a Python callback took the log over
+    assert "created a loop" in log, "Dr.Jit's debug log was not captured"
+    assert "re-recording" not in log, [line for line in log.splitlines() if "re-recording" in line]
+    np.testing.assert_array_equal(again.t.numpy(), first.t.numpy())
 
 
 def test_box_test_rejects_empty_boxes():

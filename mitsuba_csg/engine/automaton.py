@@ -44,7 +44,7 @@ from __future__ import annotations
 import drjit as dr
 
 from . import layout as K
-from .device import KernelTree, Untraversed, node_record, node_with_child_boxes, scene_rays
+from .device import KernelTree, Untraversed, node_record, node_with_child_boxes, opaque, scene_rays
 from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, INTERSECTION, LEAF, LOOP_CLOSER, MAX_SLOPE, MISS, NO_LEAF,
                      RET_CLOSER, RET_L, RET_L_ELSE_LOOP_R, RET_R, RET_R_ELSE_LOOP_L, UNION)
 from .leaf_events import box_span as _box_span
@@ -81,7 +81,7 @@ def _tie_tolerance(b, tree, o, d):
     Hits lie in the root box, so |o + t d| <= extent and every float32 rounding in the maps
     to the primitives' frames is relative to at most extent + |o| (docs/accuracy.md).
     """
-    magnitude = dr.opaque(b.Float, tree.extent) + dr.max(dr.abs(o))
+    magnitude = opaque(tree, b.Float, tree.extent) + dr.max(dr.abs(o))
     return TIE_TOLERANCE * magnitude / dr.norm(d)
 
 
@@ -108,7 +108,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
     tie = _tie_tolerance(b, tree, o, d)
     if dr.hint(start_prim is not None, mode="scalar"):
         # The start primitive's leaf, if it is a set member, and the set.
-        known = b.UInt32(start_prim) < dr.opaque(b.UInt32, tree.num_prims)
+        known = b.UInt32(start_prim) < opaque(tree, b.UInt32, tree.num_prims)
         start_leaf, start_set = dr.gather(b.module.Array2u, tree.prim_start, b.UInt32(start_prim), known)
         start_set = dr.select(known, start_set, NO_LEAF)
 
@@ -116,8 +116,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
     #      see tests/test_drjit_workarounds.py) ----
     # Model-dependent numbers enter as opaque values, not literals: a literal is compiled into
     # the kernel, and every new model would compile a new one.
-    node = dr.opaque(b.UInt32, tree.root) + dr.zeros(b.UInt32, n)   # operation node whose children are in play
-    max_iterations = dr.opaque(b.UInt32, tree.max_iterations)
+    node = opaque(tree, b.UInt32, tree.root) + dr.zeros(b.UInt32, n)   # operation node whose children are in play
+    max_iterations = opaque(tree, b.UInt32, tree.max_iterations)
     t_start = b.Float(tmin)                         # re-intersection starts strictly after this
     t_l, leaf_l, info_l = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
     t_r, leaf_r, info_r = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
@@ -142,8 +142,11 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
     # arrays out of its kernel hash, and without it a kernel compiled for a shallower tree
     # would run with stacks too small for this one (memory corruption, crashes).
     stack_size = tree.stack_size
+    # Loop state is what the automaton changes: the rays and bounds it only reads are left out
+    # (Dr.Jit would otherwise record the body twice, once to find them unchanged).
     while dr.hint((state != DONE) & (steps + walked < max_iterations) & (sp < stack_size), mode="symbolic",
-                  label="csg_traverse"):
+                  label="csg_traverse",
+                  exclude=[o, d, inv_d, tie, tmin, tmax, max_iterations, start_prim, start_leaf, start_set]):
         steps += 1
         # Register updates use dr.select rather than nested symbolic ifs: they are cheap, and
         # a literal assigned in two sibling branches misbehaved in Dr.Jit 1.5's LLVM backend
@@ -168,16 +171,16 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
             # A group's children are separate solids: none fixes what the other shows.
             group = K.flags_group(flags)
             fixes &= ~group
-        if tree.options.skip_to_sibling:
+        if dr.hint(tree.options.skip_to_sibling, mode="scalar"):
             t_start = dr.select(second & fixes, dr.maximum(t_start, t_l), t_start)
         child_bound = t_bound
-        if tree.options.bounded_search:
+        if dr.hint(tree.options.bounded_search, mode="scalar"):
             # Up to the first child's event and its tie window, so that a coincident event of
             # the second child is seen as the tie it is.
             reach = t_l + _tie_window(b, tie, K.info_slope(info_l))
             child_bound = dr.select(second & ~fixes, dr.minimum(t_bound, reach), t_bound)
         entry_bound = exit_bound = child_bound
-        if tree.options.skip_to_sibling and tree.options.bounded_search:
+        if dr.hint(tree.options.skip_to_sibling and tree.options.bounded_search, mode="scalar"):
             # Searched from the first child's event because that child fixed the node until
             # then, the second child decides what the node does there by its state alone; its
             # next event matters only where that state keeps the node's state (union and
@@ -261,11 +264,11 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
         # A lone leaf's next event is its first event after t_start, whatever the bounds
         # (a set of one: no other member can take over), so it skips the set walk's loop.
         lone = searching & ((child_bits & K.CHILD_LEAF) != 0)
-        if lone:
+        if dr.hint(lone, exclude=[o, d, tie]):
             leaf_flags, prim, _, _ = node_record(b, tree, child, lone)
             t_c, info_c, _ = leaf_hit(b, tree, leaf_flags, prim, o, d, t_start, tie)
         walking = searching & ~lone
-        if walking:
+        if dr.hint(walking, exclude=[o, d, inv_d, tie, tmin, tmax, start_prim, start_leaf, start_set]):
             member = None
             if dr.hint(start_prim is not None, mode="scalar"):
                 # Only the ray's first search from its own start is inside the start member.
@@ -342,7 +345,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
         # before t_Y cannot matter. Restarting X at t_Y skips them; the class of X's next event
         # after t_Y still says X's state from t_Y on. Without the option X restarts at t_X.
         # A redo restarts at the provisional hit's own bound.
-        if tree.options.restart_at_sibling:
+        if dr.hint(tree.options.restart_at_sibling, mode="scalar"):
             t_start = dr.select(loop_l | loop_r, t_loop, t_start)
         else:
             t_start = dr.select(loop_l, t_l, dr.select(loop_r, t_r, t_start))

@@ -19,6 +19,7 @@ from ..errors import ModelError, TreeTooDeepError
 
 MAX_STACK = 1024        # deepest tree the per-lane stacks are allocated for
 MAX_NODES = 1 << 29     # a stack frame holds a node id above 3 bits of its own (engine.automaton)
+MIN_SET_SIZE = 4
 
 
 class TraversalOptions:
@@ -29,10 +30,12 @@ class TraversalOptions:
     (the KernelTree) and would try to assign to a frozen one.
     """
 
-    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through")
+    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through",
+                 "min_set_size")
 
     def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True,
-                 near_first: bool = True, sets: bool = True, pass_through: bool = True):
+                 near_first: bool = True, sets: bool = True, pass_through: bool = True, *,
+                 min_set_size: int = MIN_SET_SIZE):
         self.restart_at_sibling = restart_at_sibling   # a loop restarts the looping child at its sibling's event
         self.skip_to_sibling = skip_to_sibling         # a fresh second child starts at the first child's event
                                                        # when that child fixes the node's state
@@ -44,11 +47,13 @@ class TraversalOptions:
                                                        # (engine.leaf_events)
         self.pass_through = pass_through               # an operation with a child the ray never meets
                                                        # after t_start is its other child, or a miss
+        self.min_set_size = min_set_size               # fewest leaves of a union searched as a set
 
     def __repr__(self) -> str:
         return (f"TraversalOptions(restart_at_sibling={self.restart_at_sibling}, "
                 f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search}, "
-                f"near_first={self.near_first}, sets={self.sets}, pass_through={self.pass_through})")
+                f"near_first={self.near_first}, sets={self.sets}, pass_through={self.pass_through}, "
+                f"min_set_size={self.min_set_size})")
 
 
 @dataclass
@@ -87,6 +92,25 @@ class KernelTree:
     shape_kinds: frozenset = frozenset(K.SHAPE_CODES.values())   # the leaves' shape codes: the kernel
                                                                   # intersects only these
     options: TraversalOptions = field(default_factory=TraversalOptions)
+    # (Dr.Jit type, value) -> the value as an opaque scalar (`opaque`), made once per tree.
+    opaque_scalars: dict = field(default_factory=dict, repr=False, compare=False)
+
+
+def opaque(tree: KernelTree, dtype, value):
+    """`value` as an opaque Dr.Jit scalar of `dtype`: a kernel input, not a literal compiled into
+    the kernel (a second model, or another tmax, runs the same kernel). Each `dr.opaque` launches
+    a memset kernel, a dozen per trace, so a tree keeps the ones it has made."""
+    key = (dtype, value)
+    scalar = tree.opaque_scalars.get(key)
+    if scalar is None:
+        scalar = dr.opaque(dtype, value)
+        if value == value and len(tree.opaque_scalars) < _MAX_OPAQUE_SCALARS:    # NaN never matches its key
+            tree.opaque_scalars[key] = scalar
+    return scalar
+
+
+# Opaque scalars a tree keeps: its own numbers and a few tmin / tmax values of its callers.
+_MAX_OPAQUE_SCALARS = 32
 
 
 def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
@@ -97,7 +121,8 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     left, right, parent = flat.node_left.copy(), flat.node_right.copy(), flat.node_parent.copy()
     lower, upper = flat.node_lower.copy(), flat.node_upper.copy()
     group = np.zeros(len(kind), bool) if flat.node_group is None else flat.node_group.copy()
-    sets = _set_roots(kind, neg, group, left, right, parent, flat.node_height)
+    options = options or TraversalOptions()
+    sets = _set_roots(kind, neg, group, left, right, parent, flat.node_height, options.min_set_size)
     wrap = bool(kind[flat.root] == K.LEAF) or bool(sets[flat.root])
     if wrap:
         # The automaton starts at an operation and searches leaves and sets as its children:
@@ -177,7 +202,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         # Every loop step consumes a distinct primitive event; each event can be re-derived
         # once per ancestor. This bound is far above any real ray and only stops runaways.
         max_iterations = int(min(2**31 - 1, 64 + 8 * n_nodes * (height + 2)))
-    return KernelTree(
+    tree = KernelTree(
         b=b, node_record=owned(b.UInt32, node_record.astype(np.uint32).ravel()),
         node_box=owned(b.Float, box.astype(np.float32).ravel()), node_wide=owned(b.Float, node_wide.ravel()),
         set_nodes=owned(b.Float, set_nodes.ravel()), walk_entry=owned(b.UInt32, walk_entry),
@@ -191,7 +216,12 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent,
         centre=tuple(float(c) for c in centre), inv_scale=float(inv_scale),
         has_meshes=bool(np.any(flat.prim_shape == K.MESH)), has_groups=bool(np.any(group)),
-        shape_kinds=frozenset(int(c) for c in np.unique(flat.prim_shape)), options=options or TraversalOptions())
+        shape_kinds=frozenset(int(c) for c in np.unique(flat.prim_shape)), options=options)
+    # Made now rather than at a first trace, which may be recorded by dr.freeze (queries.trace_rays).
+    for dtype, value in ((b.UInt32, tree.root), (b.UInt32, tree.max_iterations), (b.UInt32, tree.num_prims),
+                         (b.Float, tree.extent), (b.Float, tree.inv_scale), *((b.Float, c) for c in tree.centre)):
+        opaque(tree, dtype, value)
+    return tree
 
 
 def _scene_frame(lower, upper) -> tuple[np.ndarray, float]:
@@ -208,8 +238,8 @@ def scene_rays(tree, o, d):
     float32 whatever the scene's size; the frame's numbers are opaque values, so a second
     model of another size runs the same kernel."""
     b = tree.b
-    inv_scale = dr.opaque(b.Float, tree.inv_scale)
-    centre = b.Array3f(*(dr.opaque(b.Float, c) for c in tree.centre))
+    inv_scale = opaque(tree, b.Float, tree.inv_scale)
+    centre = b.Array3f(*(opaque(tree, b.Float, c) for c in tree.centre))
     length = dr.norm(d)
     usable = length > 0
     unit = dr.select(usable, d / length, d)      # a zero direction stays zero (it misses)
@@ -271,7 +301,7 @@ def _child_order(kind, left, right, lower, upper):
     return order, left_high
 
 
-def _set_roots(kind, neg, group, left, right, parent, height):
+def _set_roots(kind, neg, group, left, right, parent, height, min_size=2):
     """Per node, whether it roots a maximal subtree of unions of positive leaves (a set,
     `engine.leaf_events`); co-bounded (positive-form) unions and group nodes are not set members."""
     pure = (kind == K.LEAF) & ~neg
@@ -280,12 +310,14 @@ def _set_roots(kind, neg, group, left, right, parent, height):
     ops = np.flatnonzero(kind != K.LEAF)
     ops = ops[np.argsort(height[ops], kind="stable")]
     levels = np.flatnonzero(np.diff(height[ops])) + 1
+    leaves = (kind == K.LEAF).astype(np.int64)
     for at in np.split(ops, levels):
         pure[at] = plain_union[at] & pure[left[at]] & pure[right[at]]
+        leaves[at] = leaves[left[at]] + leaves[right[at]]
     parent_pure = np.zeros(len(kind), bool)
     has_parent = parent >= 0
     parent_pure[has_parent] = pure[parent[has_parent]]
-    return pure & (kind != K.LEAF) & ~parent_pure
+    return pure & (kind != K.LEAF) & ~parent_pure & (leaves >= min_size)
 
 
 def _prim_start(num_prims, n_real, sets, kind, left, parent) -> np.ndarray:

@@ -15,7 +15,7 @@ import drjit as dr
 
 from . import layout as K
 from .backend import ad_module
-from .device import gather_prim, scene_rays
+from .device import gather_prim, opaque, scene_rays
 from .shapes import surface_function
 
 
@@ -181,6 +181,6 @@ def surface_coordinates(tree, prim, info, o, d, t, active):
     # scene frame's scale.
     A = m.Matrix3f(rows[0].x, rows[0].y, rows[0].z, rows[1].x, rows[1].y, rows[1].z,
                    rows[2].x, rows[2].y, rows[2].z)
-    to_world = dr.rcp(A) * (1.0 / dr.opaque(b.Float, tree.inv_scale))
+    to_world = dr.rcp(A) * (1.0 / opaque(tree, b.Float, tree.inv_scale))
     dp_du, dp_dv = to_world @ du, to_world @ dv
     return (dr.select(active, uv, 0.0), dr.select(active, dp_du, 0.0), dr.select(active, dp_dv, 0.0))

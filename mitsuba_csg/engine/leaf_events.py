@@ -137,7 +137,10 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
             t_c, from_t = dr.select(held, t_h, t_c), dr.select(held, t_h, from_t)
             iterations += dr.select(hinted, 1, 0)
 
-    while dr.hint(~done & (sp < walk_stack_size), label="csg_set_walk"):
+    # Loop state is what the walk changes: the rays and bounds it only reads are left out
+    # (Dr.Jit would otherwise record the body twice, once to find them unchanged).
+    while dr.hint(~done & (sp < walk_stack_size), label="csg_set_walk",
+                  exclude=[o, d, inv_d, tie, entry_bound, exit_bound, tmax, widest, start_node, root]):
         iterations += 1
         has_node = node != _NO_NODE
         wide = has_node & ((node & K.SET_NODE_TAG) != 0)
@@ -145,7 +148,7 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
 
         # ---- A member: its first event after from_t ----
         again_now = dr.zeros(b.Bool, width)
-        if is_leaf:
+        if dr.hint(is_leaf, exclude=[o, d, tie]):
             flags, prim, _, _ = node_record(b, tree, node, is_leaf)
             t_m, info_m, odd_m = leaf_hit(b, tree, flags, prim, o, d, from_t, tie)
             cls_m = K.info_class(info_m)
@@ -177,7 +180,7 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
         reach_window = dr.maximum(ex_t, t_c) + widest
         limit = dr.select(joined, reach_window, entry_bound)
         cull = dr.minimum(en_t, limit)
-        if wide:
+        if dr.hint(wide, exclude=[o, inv_d]):
             refs, boxes = set_node(b, tree, node & (K.SET_NODE_TAG - 1), wide)
             keys, opened = [], []
             for ref, (lower, upper) in zip(refs, boxes):
@@ -213,7 +216,7 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
 
         # ---- End of a pass ----
         ended = ~done & (node == _NO_NODE) & (sp == 0)
-        if ended:
+        if dr.hint(ended, exclude=[tie, widest, entry_bound, exit_bound, tmax, root, start_node]):
             found_inside = containing > 0
             window = tie_window(b, tie, dr.minimum(K.info_slope(ex_info), K.info_slope(en_info)))
             # Another member may take over at the farthest exit: one entered before it (or may

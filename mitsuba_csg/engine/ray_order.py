@@ -16,6 +16,7 @@ from __future__ import annotations
 import drjit as dr
 
 from .automaton import _box_hit
+from .device import opaque
 
 # Origin cells per axis of the root box (2^4) and direction cells per axis of the octahedral
 # map (2^4): the key has 3 * 4 + 2 * 4 = 20 bits, the histogram 2^20 buckets. Measured on
@@ -60,7 +61,7 @@ def sort_keys(b, o, d):
 
 def root_box_mask(b, tree, o, inv_d, tmin, tmax, active):
     """Rays (scene frame) that meet the root box within [tmin, tmax]: the only ones with work."""
-    root = dr.opaque(b.UInt32, tree.root)   # opaque: another model, the same kernel
+    root = opaque(tree, b.UInt32, tree.root)   # opaque: another model, the same kernel
     return b.Bool(active) & _box_hit(b, tree, root, o, inv_d, tmin, tmax, True)
 
 

@@ -197,7 +197,7 @@ def _convex(b, o, d, param, plane_buf, start, count):
     near_normal = dr.zeros(b.Array3f, dr.width(start))
     far_normal = dr.zeros(b.Array3f, dr.width(start))
     k = dr.zeros(b.UInt32, dr.width(start))
-    while dr.hint(k < count, label="csg_convex_planes"):
+    while dr.hint(k < count, label="csg_convex_planes", exclude=[o, d, plane_buf, start, count]):
         plane = dr.gather(b.Array4f, plane_buf, start + k)
         n = b.Array3f(plane.x, plane.y, plane.z)
         denom = dr.dot(n, d)
@@ -290,10 +290,15 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
     t = dr.full(b.Float, dr.inf, width)
     face = dr.zeros(b.UInt32, width)
     enter = dr.zeros(b.Bool, width)
-    while dr.hint((node != _NO_NODE) | (tri < tri_end) | (sp > 0), label="csg_mesh_bvh"):
+    # Loop state is what the walk changes (Dr.Jit would otherwise record the body twice, once
+    # to find the ray's numbers unchanged).
+    while dr.hint((node != _NO_NODE) | (tri < tri_end) | (sp > 0), label="csg_mesh_bvh",
+                  exclude=[o, inv_d, triangles, nodes, skip, start, t_start, kx, ky, kz, sx, sy, sz, ox, oy, oz,
+                           slope_scale]):
         # One triangle of the current leaf, or one inner node's two children.
         testing = tri < tri_end
-        if testing:
+        if dr.hint(testing, exclude=[triangles, skip, start, t_start, kx, ky, kz, sx, sy, sz, ox, oy, oz,
+                                     slope_scale]):
             row = (start + tri) * 3
             va = dr.gather(b.Array4f, triangles, row, testing)
             vb = dr.gather(b.Array4f, triangles, row + 1, testing)
@@ -330,7 +335,7 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
         # nearer one the ray reaches and push the other if it reaches both.
         expanding = ~testing & (node != _NO_NODE)
         next_ref = dr.full(b.UInt32, _NO_NODE, width)
-        if expanding:
+        if dr.hint(expanding, exclude=[o, inv_d, nodes, t_start]):
             row = node * 4
             lower_l, upper_l = dr.gather(b.Array4f, nodes, row, expanding), dr.gather(b.Array4f, nodes, row + 1, expanding)
             near_l, far_l = box_entry(lower_l, upper_l, o, inv_d)
@@ -409,7 +414,7 @@ def _bracketed_roots(b, f, df, brackets, valid):
         his.append(b.Float(hi))
         dones.append(~has_root)
     steps = dr.zeros(b.UInt32, dr.width(valid))
-    while dr.hint(_pending(dones) & (steps < _TORUS_STEPS), label="csg_torus_newton"):
+    while dr.hint(_pending(dones) & (steps < _TORUS_STEPS), label="csg_torus_newton", exclude=[f, df, negs]):
         stepped = [_newton_step(f, df, *state) for state in zip(xs, los, his, negs, dones)]
         xs = [state[0] for state in stepped]
         los = [state[1] for state in stepped]
