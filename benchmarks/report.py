@@ -131,10 +131,12 @@ def main():
         extra = load("mesh_route_satellites")
         for r in (extra or {}).get("rows", []):
             mesh["rows"].append(dict(r, scene=f"{r['scene']} ({extra['args']['segments']} segments"
-                                     f"{', composed' if extra['args'].get('compose') else ''})"))
+                                     f"{', composed' if extra['args'].get('compose') else ''}, "
+                                     f"{extra['machine']['date']})"))
         order = mesh["machine"].get("ray_order", "rows")
         out += ["## Versus the mesh route", "",
-                f"`./run.sh bench mesh_route.py` (segments={mesh['args']['segments']}, camera rays in "
+                f"`./run.sh bench mesh_route.py` ({mesh['machine']['date']}, `{mesh['machine']['variant']}`, "
+                f"segments={mesh['args']['segments']}, camera rays in "
                 f"{'4x4 pixel tiles' if order == 'tiles' else 'image rows'}): manifold3d booleans, "
                 "Mitsuba scene build (Embree BVH), Embree primary rays at 1280x720, against optimize + CSG primary rays. "
                 "A row with its own segments comes from a separate run (`--compose`: a top-level union's children "

@@ -117,7 +117,7 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen:
 
     `frozen=True` records the call's kernels with `dr.freeze` the first time a batch of this
     width (and these tmin, tmax numbers) is traced, and replays them afterwards without
-    tracing the kernel again in Python (about 5 ms a call): for repeated top-level calls on
+    tracing the kernel again in Python (2-4 ms a call): for repeated top-level calls on
     evaluated rays, such as an interactive preview or a benchmark, not inside a symbolic loop
     or an integrator. Results are the same bit for bit.
     """
