@@ -14,7 +14,9 @@ import argparse
 
 import common
 
-MECHANISMS = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through")
+# `compounds` are members of sets: without sets (alone) they change nothing.
+MECHANISMS = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through",
+              "compounds")
 
 
 def configurations():

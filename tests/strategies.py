@@ -131,6 +131,52 @@ def unions_of_leaves(draw):
     return members
 
 
+def convex_primitives():
+    """The primitives whose inside along a ray is one interval (compound members' literals)."""
+    return st.one_of(
+        st.builds(Sphere, _f(0.3, 1.2)),
+        st.builds(Box, st.tuples(_f(0.4, 2.0), _f(0.4, 2.0), _f(0.4, 2.0))),
+        st.builds(Cylinder, _f(0.2, 1.0), _f(0.4, 2.0)),
+        st.builds(Cone, _f(0.2, 1.0), _f(0.0, 1.0), _f(0.4, 2.0)),
+        st.builds(Prism, st.integers(3, 8), _f(0.3, 1.0), _f(0.4, 2.0)),
+        convex_polyhedra(),
+    )
+
+
+@st.composite
+def compounds(draw):
+    """A small intersection of convex solids and complements of convex solids (a compound set
+    member for the kernel): a solid with 1-3 cuts, cuts flush with its faces in other frames
+    among them, or the intersection of two solids, or one cut by a union of two."""
+    base = draw(transformed(convex_primitives(), translate=0.3))
+    how = draw(st.sampled_from(["cuts", "flush", "and", "cut_by_union"]))
+    if how == "cuts":
+        return difference(base, *draw(st.lists(transformed(convex_primitives(), translate=0.8), min_size=1,
+                                               max_size=3)))
+    if how == "flush":
+        w, h = draw(_f(0.8, 2.0)), draw(_f(0.3, 1.5))
+        slot = Box((w / 3, w / 3, h)).rotate("z", draw(_f(-180, 180))).translate((draw(_f(-0.2, 0.2)), 0, 0))
+        return draw(transformed(st.just(Box((w, w, h)) - slot), translate=0.5))
+    if how == "and":
+        return base & draw(transformed(convex_primitives(), translate=0.5))
+    return base - (draw(transformed(convex_primitives(), translate=0.8)) |
+                   draw(transformed(convex_primitives(), translate=0.8)))
+
+
+@st.composite
+def unions_of_compounds(draw):
+    """A union of 4-8 members, compounds or convex leaves, alone, subtracted from a box, or
+    subtracting one."""
+    members = union(*draw(st.lists(st.one_of(compounds(), transformed(convex_primitives())), min_size=4,
+                                   max_size=8)))
+    how = draw(st.sampled_from(["alone", "alone", "holes", "cut"]))
+    if how == "holes":
+        return Box(tuple(draw(_f(1.5, 3.5)) for _ in range(3))) - members
+    if how == "cut":
+        return members - Box(tuple(draw(_f(0.8, 1.8)) for _ in range(3)))
+    return members
+
+
 @st.composite
 def stacked_columns(draw):
     """2-6 columns stacked along z, each turned about its axis and shifted a little: every

@@ -16,7 +16,7 @@ from agreement import compare
 from mitsuba_csg.engine.device import TraversalOptions
 from mitsuba_csg.engine.grouping import group_trees
 from mitsuba_csg.scenes import cheese
-from strategies import make_points, make_rays, models, stacked_columns, unions_of_leaves
+from strategies import make_points, make_rays, models, stacked_columns, unions_of_compounds, unions_of_leaves
 
 pytestmark = pytest.mark.usefixtures("jit_variant")   # every test on every JIT backend here
 
@@ -37,6 +37,7 @@ TRAVERSALS = {
     "no_near_first": TraversalOptions(near_first=False),
     "no_sets": TraversalOptions(sets=False),
     "small_sets": TraversalOptions(min_set_size=2),      # unions of 2 and 3 leaves walked as sets too
+    "no_compounds": TraversalOptions(compounds=False),   # set members are leaves only
     "no_pass_through": TraversalOptions(pass_through=False),
     "none": TraversalOptions(*[False] * 6),
 }
@@ -130,6 +131,30 @@ def test_unions_of_many_leaves_agree_with_reference(model, seed, form, traversal
     targets = [leaf.matrix[:3, 3] for leaf in model.leaves()]
     o, d = make_rays(seed, 128, targets=targets)
     compare(model, trace(model, o, d, form, traversal), o, d)
+
+
+@pytest.mark.parametrize("traversal", ["default", "no_compounds"])
+@pytest.mark.parametrize("form", ["general", "optimized"])
+@given(model=unions_of_compounds(), seed=st.integers(0, 2**31))
+def test_unions_of_compounds_agree_with_reference(model, seed, form, traversal):
+    """Compound set members (small intersections of convex solids and their complements,
+    engine.leaf_events.compound_hit), cuts flush with faces among them; the same models with
+    the automaton walking the compounds instead."""
+    targets = [leaf.matrix[:3, 3] for leaf in model.leaves()]
+    o, d = make_rays(seed, 128, targets=targets)
+    prepared = csg.prepare(model, **FORMS[form], traversal=TRAVERSALS[traversal])
+    compare(model, csg.trace(prepared, o, d), o, d, coincident=True)
+
+
+def test_satellite_parts_are_compound_members():
+    """A satellite's wings with their cut-outs and its dish are compound members of the
+    satellites' union (one set), not subtrees the automaton descends into."""
+    from mitsuba_csg import scenes
+    tree = csg.prepare(scenes.satellites(8)).tree
+    assert tree.has_compounds
+    literals = tree.compound_literals.numpy().reshape(-1, 4)
+    assert len(literals) == 8 * 3                          # two wings and a dish each
+    assert sorted((literals != 0xFFFFFFFF).sum(axis=1).tolist()) == [3] * 24
 
 
 @given(model=unions_of_leaves(), optimize=st.booleans())

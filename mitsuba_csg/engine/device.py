@@ -31,11 +31,11 @@ class TraversalOptions:
     """
 
     __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through",
-                 "min_set_size")
+                 "min_set_size", "compounds")
 
     def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True,
                  near_first: bool = True, sets: bool = True, pass_through: bool = True, *,
-                 min_set_size: int = MIN_SET_SIZE):
+                 min_set_size: int = MIN_SET_SIZE, compounds: bool = True):
         self.restart_at_sibling = restart_at_sibling   # a loop restarts the looping child at its sibling's event
         self.skip_to_sibling = skip_to_sibling         # a fresh second child starts at the first child's event
                                                        # when that child fixes the node's state
@@ -47,13 +47,15 @@ class TraversalOptions:
                                                        # (engine.leaf_events)
         self.pass_through = pass_through               # an operation with a child the ray never meets
                                                        # after t_start is its other child, or a miss
-        self.min_set_size = min_set_size               # fewest leaves of a union searched as a set
+        self.min_set_size = min_set_size               # fewest members of a union searched as a set
+        self.compounds = compounds                     # set members may be small intersections and
+                                                       # differences of convex leaves, not only leaves
 
     def __repr__(self) -> str:
         return (f"TraversalOptions(restart_at_sibling={self.restart_at_sibling}, "
                 f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search}, "
                 f"near_first={self.near_first}, sets={self.sets}, pass_through={self.pass_through}, "
-                f"min_set_size={self.min_set_size})")
+                f"min_set_size={self.min_set_size}, compounds={self.compounds})")
 
 
 @dataclass
@@ -69,7 +71,9 @@ class KernelTree:
                             # (UInt32 bits: a leaf's node id, or SET_NODE_TAG | a 4-wide node), then
                             # their boxes (lower xyz, upper xyz each; NaN for an empty slot)
     walk_entry: object      # UInt32 per node: where a set walk from it starts (its 4-wide root, or
-                            # the node itself for a leaf)
+                            # the node itself for a leaf); a compound member's literal record
+    compound_literals: object  # UInt32, MAX_COMPOUND_LITERALS per compound set member: its literals
+                               # (layout.LITERAL_COMPLEMENT | leaf node id; NO_LITERAL for none)
     prim_start: object      # UInt32, 2 per primitive: its leaf node, and the set that leaf is a member
                             # of (NO_LEAF if none): where a ray starting on the primitive's surface
                             # starts inside a set member (engine.leaf_events.next_event's `start_member`)
@@ -89,6 +93,7 @@ class KernelTree:
     inv_scale: float
     has_meshes: bool        # the kernel includes the mesh BVH walk only where there are mesh leaves
     has_groups: bool = False  # the kernel tests the GROUP flag only where there are group nodes
+    has_compounds: bool = False  # the set walk evaluates compound members only where there are some
     shape_kinds: frozenset = frozenset(K.SHAPE_CODES.values())   # the leaves' shape codes: the kernel
                                                                   # intersects only these
     options: TraversalOptions = field(default_factory=TraversalOptions)
@@ -122,7 +127,10 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     lower, upper = flat.node_lower.copy(), flat.node_upper.copy()
     group = np.zeros(len(kind), bool) if flat.node_group is None else flat.node_group.copy()
     options = options or TraversalOptions()
-    sets = _set_roots(kind, neg, group, left, right, parent, flat.node_height, options.min_set_size)
+    compound = _compound_roots(kind, neg, group, left, right, parent, flat) if options.compounds and options.sets \
+        else np.zeros(len(kind), bool)
+    sets = _set_roots(kind, neg, group, left, right, parent, flat.node_height, options.min_set_size, compound)
+    compound &= _set_members(sets, compound, kind, left, right)
     wrap = bool(kind[flat.root] == K.LEAF) or bool(sets[flat.root])
     if wrap:
         # The automaton starts at an operation and searches leaves and sets as its children:
@@ -133,6 +141,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         neg = np.concatenate([neg, [False, False]])
         group = np.concatenate([group, [False, False]])
         sets = np.concatenate([sets, [False, False]])
+        compound = np.concatenate([compound, [False, False]])
         left = np.concatenate([left, [flat.root, 0]])
         right = np.concatenate([right, [n + 1, -1]])
         parent = np.concatenate([parent, [-1, n]])
@@ -175,7 +184,8 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     for offset, child in ((4, left), (10, right)):
         node_wide[ops, offset:offset + 3] = box[child[ops], 0:3]
         node_wide[ops, offset + 3:offset + 6] = box[child[ops], 4:7]
-    set_nodes, walk_entry, pending = _wide_sets(sets, kind, left, right, lower, upper, box)
+    set_nodes, walk_entry, pending = _wide_sets(sets, kind, left, right, lower, upper, box, compound)
+    compound_literals = _compound_literals(compound, kind, left, right, walk_entry)
     prim_start = _prim_start(flat.num_prims, len(flat.node_kind), sets, kind, left, parent)
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
     # world -> canonical after scene -> world (x = centre + x' / inv_scale)
@@ -206,6 +216,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         b=b, node_record=owned(b.UInt32, node_record.astype(np.uint32).ravel()),
         node_box=owned(b.Float, box.astype(np.float32).ravel()), node_wide=owned(b.Float, node_wide.ravel()),
         set_nodes=owned(b.Float, set_nodes.ravel()), walk_entry=owned(b.UInt32, walk_entry),
+        compound_literals=owned(b.UInt32, compound_literals.ravel()),
         prim_start=owned(b.UInt32, prim_start.ravel()),
         walk_stack_size=max(stack_size_class(height), stack_size_class(pending + 1), WALK_STACK_MIN),
         prim_record=owned(b.Float, prim_record.ravel()),
@@ -216,6 +227,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent,
         centre=tuple(float(c) for c in centre), inv_scale=float(inv_scale),
         has_meshes=bool(np.any(flat.prim_shape == K.MESH)), has_groups=bool(np.any(group)),
+        has_compounds=bool(np.any(compound)),
         shape_kinds=frozenset(int(c) for c in np.unique(flat.prim_shape)), options=options)
     # Made now rather than at a first trace, which may be recorded by dr.freeze (queries.trace_rays).
     for dtype, value in ((b.UInt32, tree.root), (b.UInt32, tree.max_iterations), (b.UInt32, tree.num_prims),
@@ -301,23 +313,83 @@ def _child_order(kind, left, right, lower, upper):
     return order, left_high
 
 
-def _set_roots(kind, neg, group, left, right, parent, height, min_size=2):
-    """Per node, whether it roots a maximal subtree of unions of positive leaves (a set,
-    `engine.leaf_events`); co-bounded (positive-form) unions and group nodes are not set members."""
-    pure = (kind == K.LEAF) & ~neg
+# Leaf shapes whose inside along a ray is one interval: compound members' literals.
+_CONVEX_SHAPES = (K.SPHERE, K.BOX, K.CONE, K.CONVEX)
+
+
+def _compound_roots(kind, neg, group, left, right, parent, flat) -> np.ndarray:
+    """Per node, whether it is a compound set member candidate: an intersection or difference
+    under a plain union whose subtree is an intersection of at most MAX_COMPOUND_LITERALS
+    literals, each a convex leaf or a complement of one (a difference's subtrahend, or a
+    union of leaves subtracted: A - (B | C) = A & ~B & ~C). The set walk finds its next event in
+    one member visit (`leaf_events.compound_hit`) where the automaton would descend into it,
+    as Satellites' wings with their cut-outs made it do."""
+    n = len(kind)
+    # Literals of the node as an intersection (as_is), and of its complement (negated); -1: none.
+    as_is, negated = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
+    leaves = np.flatnonzero(kind == K.LEAF)
+    convex = leaves[np.isin(flat.prim_shape[left[leaves]], _CONVEX_SHAPES) & ~neg[leaves]]
+    as_is[convex] = negated[convex] = 1
+    ops = np.flatnonzero(kind != K.LEAF)
+    ops = ops[np.argsort(flat.node_height[ops], kind="stable")]
+    levels = np.flatnonzero(np.diff(flat.node_height[ops])) + 1
+    limit = K.MAX_COMPOUND_LITERALS
+
+    def total(a, c):
+        return np.where((a > 0) & (c > 0) & (a + c <= limit), a + c, -1)
+    for at in np.split(ops, levels):
+        plain = ~neg[at] & ~group[at]
+        l, r = left[at], right[at]
+        as_is[at] = np.where(plain & (kind[at] == K.INTERSECTION), total(as_is[l], as_is[r]),
+                             np.where(plain & (kind[at] == K.DIFFERENCE), total(as_is[l], negated[r]), -1))
+        negated[at] = np.where(plain & (kind[at] == K.UNION), total(negated[l], negated[r]), -1)
+    literals = as_is
+    has_parent = parent >= 0
+    under_union = np.zeros(n, bool)
+    p = parent[has_parent]
+    under_union[has_parent] = (kind[p] == K.UNION) & ~neg[p] & ~group[p]
+    return (literals > 0) & (kind != K.LEAF) & under_union
+
+
+def _compound_literals(compound, kind, left, right, walk_entry) -> np.ndarray:
+    """Literal records (layout.MAX_COMPOUND_LITERALS words each) of the compound members, whose
+    walk_entry becomes their record's index."""
+    roots = np.flatnonzero(compound)
+    records = np.full((max(len(roots), 1), K.MAX_COMPOUND_LITERALS), K.NO_LITERAL, np.uint32)
+    for index, root in enumerate(roots):
+        found, pending = [], [(int(root), False)]
+        while pending:
+            node, complement = pending.pop()      # complement: the node's complement is wanted
+            if kind[node] == K.LEAF:
+                found.append(node | (K.LITERAL_COMPLEMENT if complement else 0))
+            else:                                 # A & B, A & ~B, or under a complement ~A & ~B
+                pending.append((int(right[node]), complement or kind[node] == K.DIFFERENCE))
+                pending.append((int(left[node]), complement))
+        records[index, :len(found)] = found
+        walk_entry[root] = index
+    return records
+
+
+def _set_roots(kind, neg, group, left, right, parent, height, min_size=2, compound=None):
+    """Per node, whether it roots a maximal subtree of unions of members, positive leaves or
+    compounds (a set, `engine.leaf_events`), with at least `min_size` members; co-bounded
+    (positive-form) unions and group nodes are not set members."""
+    compound = np.zeros(len(kind), bool) if compound is None else compound
+    member = ((kind == K.LEAF) & ~neg) | compound
+    pure = member.copy()
     plain_union = (kind == K.UNION) & ~neg & ~group
     # Bottom-up, one vectorized step per level.
     ops = np.flatnonzero(kind != K.LEAF)
     ops = ops[np.argsort(height[ops], kind="stable")]
     levels = np.flatnonzero(np.diff(height[ops])) + 1
-    leaves = (kind == K.LEAF).astype(np.int64)
+    members = member.astype(np.int64)
     for at in np.split(ops, levels):
-        pure[at] = plain_union[at] & pure[left[at]] & pure[right[at]]
-        leaves[at] = leaves[left[at]] + leaves[right[at]]
+        pure[at] = compound[at] | (plain_union[at] & pure[left[at]] & pure[right[at]])
+        members[at] = np.where(compound[at], 1, members[left[at]] + members[right[at]])
     parent_pure = np.zeros(len(kind), bool)
     has_parent = parent >= 0
     parent_pure[has_parent] = pure[parent[has_parent]]
-    return pure & (kind != K.LEAF) & ~parent_pure & (leaves >= min_size)
+    return pure & ~member & ~parent_pure & (members >= min_size)
 
 
 def _prim_start(num_prims, n_real, sets, kind, left, parent) -> np.ndarray:
@@ -340,12 +412,28 @@ def _prim_start(num_prims, n_real, sets, kind, left, parent) -> np.ndarray:
         climbing[idx[found]] = False
         above[idx] = np.where(found, -1, parent[at])
         climbing &= above >= 0
-    member = owner >= 0
+    # A compound's literals are not members: their set cannot take a hint from them.
+    direct = np.zeros(len(leaves), bool)
+    has_parent = parent[leaves] >= 0
+    direct[has_parent] = kind[parent[leaves[has_parent]]] == K.UNION
+    member = (owner >= 0) & direct
     out[left[leaves[member]], 1] = owner[member]
     return out
 
 
-def _wide_sets(sets, kind, left, right, lower, upper, box) -> tuple[np.ndarray, np.ndarray, int]:
+def _set_members(sets, compound, kind, left, right) -> np.ndarray:
+    """Per node, whether it is a member (a leaf or a compound) of one of the sets."""
+    member = np.zeros(len(kind), bool)
+    frontier = np.flatnonzero(sets)
+    while frontier.size:
+        children = np.concatenate([left[frontier], right[frontier]])
+        ends = (kind[children] == K.LEAF) | compound[children]
+        member[children[ends]] = True
+        frontier = children[~ends]
+    return member
+
+
+def _wide_sets(sets, kind, left, right, lower, upper, box, compound) -> tuple[np.ndarray, np.ndarray, int]:
     """Each set's binary subtree collapsed into 4-wide nodes for the set walk (fewer, wider
     visits: a node's four boxes are tested in one step from one record). A node takes its two
     children, then twice splits its inner child of largest box area into that child's two
@@ -355,7 +443,7 @@ def _wide_sets(sets, kind, left, right, lower, upper, box) -> tuple[np.ndarray, 
     walk_entry = np.arange(len(kind), dtype=np.uint32)
     extent = np.nan_to_num(upper - lower, nan=0.0, posinf=1e30, neginf=0.0).clip(0.0, 1e30)
     area = extent[:, 0] * extent[:, 1] + extent[:, 1] * extent[:, 2] + extent[:, 2] * extent[:, 0]
-    inner_node = kind != K.LEAF
+    inner_node = (kind != K.LEAF) & ~compound      # a set's own unions; its members are leaves and compounds
     id_of = np.full(len(kind), -1, np.int64)
     levels = []                           # per level: its 4-wide nodes' children (tree ids, -1: none)
     frontier, count = np.flatnonzero(sets), 0

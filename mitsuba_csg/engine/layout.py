@@ -161,7 +161,13 @@ def with_class(info, cls, flip):
 PRIM_RECORD_FLOATS = 16
 NODE_WIDE_FLOATS = 16      # engine.device.node_with_child_boxes
 SET_NODE_FLOATS = 32       # engine.device: a 4-wide node of a set
-SET_NODE_TAG = 1 << 31     # a set walk's reference to a 4-wide node (else a leaf's node id)
+SET_NODE_TAG = 1 << 31     # a set walk's reference to a 4-wide node (else a member's node id)
+
+# A compound set member (engine.device, engine.leaf_events.compound_hit): an intersection of
+# convex leaves and complements of convex leaves, listed in a record of literal words.
+MAX_COMPOUND_LITERALS = 4
+LITERAL_COMPLEMENT = 1 << 31   # the literal is the leaf's complement (the leaf node id below)
+NO_LITERAL = 0xFFFFFFFF
 PRIM_ROWS, PRIM_PARAMS, PRIM_PLANE_START, PRIM_COUNT_SHAPE = 0, 12, 14, 15
 SHAPE_SHIFT = 16
 PLANE_COUNT_MASK = 0xFFFF

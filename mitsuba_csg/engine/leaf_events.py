@@ -74,6 +74,108 @@ def leaf_hit(b, tree, flags, prim, o, d, t_start, tie):
 
 
 @dr.syntax
+def member_hit(b, tree, node, flags, prim, o, d, t_start, tie, active):
+    """(t, info, non-convex, leaf node, leaf intersections) of a set member's first event
+    after t_start: a leaf's own, or a compound's (`compound_hit`)."""
+    width = dr.width(t_start)
+    compound = active & (K.flags_kind(flags) != K.LEAF)
+    t, info, non_convex = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, MISS, width), dr.zeros(b.Bool, width)
+    leaf = b.UInt32(node)
+    evaluated = dr.full(b.UInt32, 1, width)
+    if dr.hint(compound, exclude=[o, d, tie]):
+        t, info, non_convex, leaf, evaluated = compound_hit(b, tree, node, o, d, t_start, tie, compound)
+    else:
+        t, info, non_convex = leaf_hit(b, tree, flags, prim, o, d, t_start, tie)
+    return t, info, non_convex, leaf, evaluated
+
+
+# Rounds of `compound_hit` before it gives up (each passes at least one of the literals' at
+# most two events, so 2 x MAX_COMPOUND_LITERALS + 1 suffice).
+_COMPOUND_ROUNDS = 2 * K.MAX_COMPOUND_LITERALS + 2
+
+
+@dr.syntax
+def compound_hit(b, tree, node, o, d, t_start, tie, active):
+    """(t, info, non-convex, leaf node, leaf intersections) of the first event after t_start of a compound set
+    member: an intersection of up to MAX_COMPOUND_LITERALS convex leaves and complements of
+    convex leaves (a satellite's wing with its cut-outs, `engine.device`).
+
+    Rounds from `cur` (t_start first): every literal's first event after cur. All inside:
+    the compound is inside past cur, so its next event is the nearest exit (the first round)
+    or its entry at cur (later rounds: cur is the latest entry of the round before). Some
+    literal outside for good: no event. Otherwise the next round starts at the latest entry
+    of the literals outside. A literal whose exit lies within the tie window after an entry
+    at cur leaves as another enters (touching faces, as in the state tables): it counts as
+    outside, its exit as an entry to wait for.
+    """
+    width = dr.width(t_start)
+    record = dr.gather(b.UInt32, tree.walk_entry, node, active)
+    literals = dr.gather(b.module.Array4u, tree.compound_literals, record, active)
+    count = dr.zeros(b.UInt32, width)
+    non_convex = dr.zeros(b.Bool, width)
+    for slot in range(K.MAX_COMPOUND_LITERALS):
+        present = literals[slot] != K.NO_LITERAL
+        count += dr.select(present, 1, 0)
+        non_convex |= present & ((literals[slot] & K.LITERAL_COMPLEMENT) != 0)
+    cur = b.Float(t_start)
+    cand_t, cand_leaf, cand_info = b.Float(t_start), dr.full(b.UInt32, NO_LEAF, width), dr.full(b.UInt32, MISS, width)
+    res_t, res_leaf, res_info = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
+        dr.full(b.UInt32, MISS, width)
+    # This round's accumulators: all inside so far; the nearest exit; the latest entry (or tied
+    # exit) of the literals outside; a literal outside for good.
+    all_in = dr.full(b.Bool, True, width)
+    exit_t, exit_leaf, exit_info = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
+        dr.full(b.UInt32, MISS, width)
+    late_t, late_leaf, late_info = dr.full(b.Float, -dr.inf, width), dr.full(b.UInt32, NO_LEAF, width), \
+        dr.full(b.UInt32, MISS, width)
+    never = dr.zeros(b.Bool, width)
+    k = dr.zeros(b.UInt32, width)
+    rounds = dr.zeros(b.UInt32, width)
+    evaluated = dr.zeros(b.UInt32, width)
+    done = ~b.Bool(active)
+    while dr.hint(~done, label="csg_compound", exclude=[o, d, tie, literals, count]):
+        literal = dr.select(k == 0, literals[0], dr.select(k == 1, literals[1], dr.select(k == 2, literals[2],
+                                                                                          literals[3])))
+        leaf = literal & ~b.UInt32(K.LITERAL_COMPLEMENT)
+        flags, prim, _, _ = node_record(b, tree, leaf, ~done)
+        flags = flags | dr.select((literal & K.LITERAL_COMPLEMENT) != 0, b.UInt32(K.NEGATIVE_BIT), 0)
+        t_k, info_k, _ = leaf_hit(b, tree, flags, prim, o, d, cur, tie)
+        evaluated += 1
+        cls_k = K.info_class(info_k)
+        window = tie_window(b, tie, dr.minimum(K.info_slope(info_k), K.info_slope(cand_info)))
+        # (Not the literal that entered at cur: a thin slab's own exit is no tie.)
+        tied = (cls_k == EXIT) & (rounds > 0) & (leaf != cand_leaf) & (t_k <= cur + window)
+        inside = (cls_k == EXIT) & ~tied
+        all_in &= inside
+        nearer = inside & (t_k < exit_t)
+        exit_t, exit_leaf, exit_info = dr.select(nearer, t_k, exit_t), dr.select(nearer, leaf, exit_leaf), \
+            dr.select(nearer, info_k, exit_info)
+        never |= ~inside & (cls_k == MISS)
+        later = ~inside & (cls_k != MISS) & (t_k > late_t)
+        late_t, late_leaf, late_info = dr.select(later, t_k, late_t), dr.select(later, leaf, late_leaf), \
+            dr.select(later, info_k, late_info)
+        last = k + 1 >= count
+        exits = last & all_in & (rounds == 0)
+        enters = last & all_in & (rounds > 0)
+        misses = last & ~all_in & (never | (rounds + 1 >= _COMPOUND_ROUNDS))
+        res_t = dr.select(exits, exit_t, dr.select(enters, cand_t, res_t))
+        res_leaf = dr.select(exits, exit_leaf, dr.select(enters, cand_leaf, res_leaf))
+        res_info = dr.select(exits, exit_info, dr.select(enters, cand_info, res_info))
+        done |= exits | enters | misses
+        advance = last & ~done
+        cur = dr.select(advance, late_t, cur)
+        cand_t, cand_leaf, cand_info = dr.select(advance, late_t, cand_t), dr.select(advance, late_leaf, cand_leaf), \
+            dr.select(advance, late_info, cand_info)
+        rounds = dr.select(advance, rounds + 1, rounds)
+        all_in |= last
+        never &= ~last
+        exit_t = dr.select(last, dr.inf, exit_t)
+        late_t = dr.select(last, -dr.inf, late_t)
+        k = dr.select(last, 0, k + 1)
+    return res_t, res_info, non_convex, res_leaf, evaluated
+
+
+@dr.syntax
 def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tmax, tie, active,
                start_member=None):
     """(t, leaf node, info, iterations) of the next event after t_start of the leaf or set at `root`.
@@ -150,7 +252,13 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
         again_now = dr.zeros(b.Bool, width)
         if dr.hint(is_leaf, exclude=[o, d, tie]):
             flags, prim, _, _ = node_record(b, tree, node, is_leaf)
-            t_m, info_m, odd_m = leaf_hit(b, tree, flags, prim, o, d, from_t, tie)
+            if dr.hint(tree.has_compounds, mode="scalar"):
+                t_m, info_m, odd_m, leaf_m, evaluated = member_hit(b, tree, node, flags, prim, o, d, from_t, tie,
+                                                                   is_leaf)
+                iterations += evaluated - 1       # a compound's leaf intersections count as steps
+            else:
+                t_m, info_m, odd_m = leaf_hit(b, tree, flags, prim, o, d, from_t, tie)
+                leaf_m = node
             cls_m = K.info_class(info_m)
             # Once inside, the union's inside reaches at least `reach`: a member entered
             # before it (or within the tie window after it: a touching face) extends it. Its
@@ -162,12 +270,12 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
             again_now = joined & ~again & (cls_m == ENTER) & (t_m <= reach + w_m)
             contains = ~again_now & (cls_m == EXIT)
             farther = contains & (t_m > ex_t)
-            ex_t, ex_leaf, ex_info = dr.select(farther, t_m, ex_t), dr.select(farther, node, ex_leaf), \
+            ex_t, ex_leaf, ex_info = dr.select(farther, t_m, ex_t), dr.select(farther, leaf_m, ex_leaf), \
                 dr.select(farther, info_m, ex_info)
             containing = dr.select(contains, containing + 1, containing)
             non_convex_inside |= contains & odd_m
             nearer = ~again_now & (cls_m == ENTER) & (t_m < en_t)
-            en_t, en_leaf, en_info = dr.select(nearer, t_m, en_t), dr.select(nearer, node, en_leaf), \
+            en_t, en_leaf, en_info = dr.select(nearer, t_m, en_t), dr.select(nearer, leaf_m, en_leaf), \
                 dr.select(nearer, info_m, en_info)
             from_t = dr.select(again_now, t_m, t_c)
         again = again_now
