@@ -313,6 +313,14 @@ def _child_order(kind, left, right, lower, upper):
     return order, left_high
 
 
+def _levels_bottom_up(kind, height) -> list:
+    """The operation nodes in groups of equal height, lowest first: one vectorized step per
+    level computes a per-node property from the children's."""
+    ops = np.flatnonzero(kind != K.LEAF)
+    ops = ops[np.argsort(height[ops], kind="stable")]
+    return np.split(ops, np.flatnonzero(np.diff(height[ops])) + 1)
+
+
 # Leaf shapes whose inside along a ray is one interval: compound members' literals.
 _CONVEX_SHAPES = (K.SPHERE, K.BOX, K.CONE, K.CONVEX)
 
@@ -330,14 +338,11 @@ def _compound_roots(kind, neg, group, left, right, parent, flat) -> np.ndarray:
     leaves = np.flatnonzero(kind == K.LEAF)
     convex = leaves[np.isin(flat.prim_shape[left[leaves]], _CONVEX_SHAPES) & ~neg[leaves]]
     as_is[convex] = negated[convex] = 1
-    ops = np.flatnonzero(kind != K.LEAF)
-    ops = ops[np.argsort(flat.node_height[ops], kind="stable")]
-    levels = np.flatnonzero(np.diff(flat.node_height[ops])) + 1
     limit = K.MAX_COMPOUND_LITERALS
 
     def total(a, c):
         return np.where((a > 0) & (c > 0) & (a + c <= limit), a + c, -1)
-    for at in np.split(ops, levels):
+    for at in _levels_bottom_up(kind, flat.node_height):
         plain = ~neg[at] & ~group[at]
         l, r = left[at], right[at]
         as_is[at] = np.where(plain & (kind[at] == K.INTERSECTION), total(as_is[l], as_is[r]),
@@ -378,12 +383,8 @@ def _set_roots(kind, neg, group, left, right, parent, height, min_size=2, compou
     member = ((kind == K.LEAF) & ~neg) | compound
     pure = member.copy()
     plain_union = (kind == K.UNION) & ~neg & ~group
-    # Bottom-up, one vectorized step per level.
-    ops = np.flatnonzero(kind != K.LEAF)
-    ops = ops[np.argsort(height[ops], kind="stable")]
-    levels = np.flatnonzero(np.diff(height[ops])) + 1
     members = member.astype(np.int64)
-    for at in np.split(ops, levels):
+    for at in _levels_bottom_up(kind, height):
         pure[at] = compound[at] | (plain_union[at] & pure[left[at]] & pure[right[at]])
         members[at] = np.where(compound[at], 1, members[left[at]] + members[right[at]])
     parent_pure = np.zeros(len(kind), bool)

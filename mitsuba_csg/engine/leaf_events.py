@@ -76,7 +76,11 @@ def leaf_hit(b, tree, flags, prim, o, d, t_start, tie):
 @dr.syntax
 def member_hit(b, tree, node, flags, prim, o, d, t_start, tie, active):
     """(t, info, non-convex, leaf node, leaf intersections) of a set member's first event
-    after t_start: a leaf's own, or a compound's (`compound_hit`)."""
+    after t_start: a leaf's own, or a compound's (`compound_hit`, compiled in only for trees
+    that have compounds)."""
+    if dr.hint(not tree.has_compounds, mode="scalar"):
+        t, info, non_convex = leaf_hit(b, tree, flags, prim, o, d, t_start, tie)
+        return t, info, non_convex, b.UInt32(node), 1
     width = dr.width(t_start)
     compound = active & (K.flags_kind(flags) != K.LEAF)
     t, info, non_convex = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, MISS, width), dr.zeros(b.Bool, width)
@@ -252,13 +256,8 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
         again_now = dr.zeros(b.Bool, width)
         if dr.hint(is_leaf, exclude=[o, d, tie]):
             flags, prim, _, _ = node_record(b, tree, node, is_leaf)
-            if dr.hint(tree.has_compounds, mode="scalar"):
-                t_m, info_m, odd_m, leaf_m, evaluated = member_hit(b, tree, node, flags, prim, o, d, from_t, tie,
-                                                                   is_leaf)
-                iterations += evaluated - 1       # a compound's leaf intersections count as steps
-            else:
-                t_m, info_m, odd_m = leaf_hit(b, tree, flags, prim, o, d, from_t, tie)
-                leaf_m = node
+            t_m, info_m, odd_m, leaf_m, evaluated = member_hit(b, tree, node, flags, prim, o, d, from_t, tie, is_leaf)
+            iterations += evaluated - 1       # a compound's leaf intersections count as steps
             cls_m = K.info_class(info_m)
             # Once inside, the union's inside reaches at least `reach`: a member entered
             # before it (or within the tie window after it: a touching face) extends it. Its
