@@ -49,7 +49,7 @@ def main():
                 "`./run.sh bench trace_throughput.py --scenes <scenes> --no-compile --repeats 2 --name table2` "
                 "(and `--name table2_large --no-path` for the two largest scenes"
                 + (f", run {large['machine']['date']}" if large else "") + "); `--scenes paper` runs all "
-                "nine in one go (15 minutes here on 2026-12-06).", "",
+                "nine in one go (about a quarter of an hour here).", "",
                 f"1280x720 primary rays (one per pixel, no shading; traced in "
                 f"{'4x4 pixel tiles' if m.get('ray_order') == 'tiles' else 'image rows'}). "
                 "'-': the input tree with chains of one "
