@@ -319,24 +319,41 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
 
     def _shadow_term(self, scene, sensor, csg, casters, camera, source, sampler, spp, wavelengths,
                      wavelength_weight):
-        """The shadows the curves `casters` cast from a light `source` (a point per lane,
-        `_Source`): a
-        curve point x the light's point l sees casts the edge of a shadow where the light's ray
-        through x, continued, meets a surface (y0, normal n). Within that surface's tangent
-        plane the edge is the curve's central projection from l, y = l + (x - l) ((y0 - l) .
-        n) / ((x - l) . n), which moves with x, and with y0 and n where the receiver is a csg
-        shape (a hole's rim casting its shadow into the hole moves with it); the camera sees
-        its image as it sees any curve, and the difference across it is the light of l alone
-        (an area light's soft shadow is the sum of the sharp ones of its points). Mitsuba's
-        own shapes receive as if they stood still.
+        """The edges of the shadows the curves `casters` cast from a light `source` (a point
+        per lane, `_Source`; `_shadow_edges`) as the camera sees them: the difference across
+        one is the light of that light alone. Mitsuba's shapes' curves (`csg_edges.StaticCurves`)
+        count where they cast onto a csg shape (elsewhere their shadows stand still)."""
+        edges = self._shadow_edges(scene, csg, casters, source, sampler)
+        if edges is None:
+            return None
+        cam = _point(camera)
+        with dr.suspend_grad():
+            valid = edges.valid & edges.on_csg if edges.static else edges.valid
+            # A camera ray to y0 that passes the casting point itself sees the shadow's edge
+            # right behind the caster's own contour, which the primary term counts (a light at
+            # the camera hides every shadow behind its caster): only edges clear of it count.
+            valid &= _edge_in_view(scene, csg, cam, edges.x, edges.receiver.p, valid, SHADOW_GAP)
+
+        def light_of_source(target, active):
+            return _direct_light(scene, csg, cam, target, source, wavelengths, active)
+        return self._difference(scene, sampler, camera, sensor, edges.y, edges.dy, edges.pmf, valid, wavelengths,
+                                wavelength_weight, spp, SHADOW_OFFSET, light_of_source)
+
+    def _shadow_edges(self, scene, csg, casters, source, sampler):
+        """The edges of the shadows the curves `casters` cast from a light `source` (`_ShadowEdges`,
+        or None where there are no curves): a curve point x the light's point l sees casts the
+        edge of a shadow where the light's ray through x, continued, meets a surface (y0,
+        normal n). Within that surface's tangent plane the edge is the curve's central
+        projection from l, y = l + (x - l) ((y0 - l) . n) / ((x - l) . n), which moves with x,
+        and with y0 and n where the receiver is a csg shape (a hole's rim casting its shadow
+        into the hole moves with it). Mitsuba's own shapes receive as if they stood still.
 
         A light at infinity (directional, environment) is seen from a stand-in point far along
         its direction, and its edges are parallel projections, y = x + d ((y0 - x) . n) /
         (d . n), d where its light travels.
 
         `casters`: the csg shapes' curves (a `csg_edges.Curves` per shape), or those of
-        Mitsuba's shapes (`csg_edges.StaticCurves`), which cast onto csg shapes only
-        (elsewhere their shadows stand still)."""
+        Mitsuba's shapes (`csg_edges.StaticCurves`), which stand still."""
         static = isinstance(casters, csg_edges.StaticCurves)
         parallel = source.away is not None
         size = float(np.linalg.norm(np.array(scene.bbox().extents())))
@@ -357,27 +374,14 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             valid &= found
             ray = mi.Ray3f(x_d + start * away, away)
         with dr.resume_grad():
-            si, _, on_csg, _, _ = csg.intersect(scene, ray, valid, attached=True)
+            si, bsdf, on_csg, _, _ = csg.intersect(scene, ray, valid, attached=True)
             y0_a, n_a = mi.Point3f(si.p), mi.Vector3f(si.n)
         with dr.suspend_grad():
-            y0, n = dr.detach(y0_a), dr.detach(n_a)
+            receiver = dr.detach(si)
+            y0, n = receiver.p, mi.Vector3f(receiver.n)
             valid &= si.is_valid()
-            if static:
-                valid &= on_csg
             reach = dr.dot(x_d - lamp, n)
             valid &= dr.abs(dr.dot(away, n)) > 1e-6
-            # A camera ray to y0 that passes the casting point itself sees the shadow's edge
-            # right behind the caster's own contour, which the primary term counts (a light at
-            # the camera hides every shadow behind its caster): only edges clear of it count.
-            cam = _point(camera)
-            towards = cam - y0
-            closest = y0 + towards * (dr.dot(x_d - y0, towards) / dr.squared_norm(towards))
-            valid &= dr.norm(x_d - closest) > SHADOW_GAP * dr.norm(x_d - cam)
-            # the receiver seen by the camera: a ray from just in front of it is not blocked
-            distance = dr.norm(towards)
-            view_ray = mi.Ray3f(y0 + OFFSET * towards, towards / distance)
-            view_ray.maxt = (1.0 - 2.0 * OFFSET) * distance
-            valid &= ~csg.occluded(scene, view_ray, valid)
             # the projection's magnification within the receiver's tangent plane
             magnification = 1.0 if parallel else dr.dot(y0 - lamp, n) / reach
             dy = magnification * (dx_d - away * (dr.dot(dx_d, n) / dr.dot(away, n)))
@@ -385,11 +389,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             y = x + away * (dr.dot(y0_a - x, n_a) / dr.dot(away, n_a))
         else:
             y = lamp + (x - lamp) * (dr.dot(y0_a - lamp, n_a) / dr.dot(x - lamp, n_a))
-
-        def light_of_source(target, active):
-            return _direct_light(scene, csg, cam, target, source, wavelengths, active)
-        return self._difference(scene, sampler, camera, sensor, y, dy, pmf, valid, wavelengths, wavelength_weight,
-                                spp, SHADOW_OFFSET, light_of_source)
+        return _ShadowEdges(x_d, y, dy, receiver, bsdf, on_csg, pmf, valid, static)
 
     def _indirect_term(self, scene, sensor, csg, casters, camera, sampler, spp, wavelengths, wavelength_weight):
         """The curves as seen from the surfaces the camera sees. A pixel sample's camera ray
@@ -408,6 +408,28 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         Mitsuba's shapes (`csg_edges.StaticCurves`), which stand still but move relative to
         a p on a moving csg shape (only such p are sampled for them)."""
         static = isinstance(casters, csg_edges.StaticCurves)
+        vertex = self._camera_vertex(scene, sensor, csg, sampler, wavelengths)
+        valid = vertex.valid & vertex.on_csg if static else vertex.valid
+        p = vertex.si.p
+        # Curves as seen from p (silhouettes relative to p), weighed as seen from the camera.
+        if static:
+            sampled = _sample_static(scene, csg, casters, camera, sampler, None, p)
+        else:
+            sampled = self._sample_curves(scene, csg, casters, camera, sampler, None, p)
+        if sampled is None:
+            return None
+        x, dx, seen, _, pmf, _, _ = sampled
+        valid &= seen
+
+        def jump(x_d, normal, distance, active):
+            def radiance(target, active):
+                return self._reflected_radiance(scene, sampler, vertex.si, target, active)
+            return _jump(radiance, x_d, normal, INDIRECT_OFFSET * distance, active)
+        return self._seen_from_vertex(vertex, x, dx, pmf, valid, jump, spp, wavelength_weight)
+
+    def _camera_vertex(self, scene, sensor, csg, sampler, wavelengths):
+        """A camera ray per pixel sample and the surface it meets (`_Vertex`): only a smooth
+        BSDF there (not a delta) reflects light from a region of directions."""
         with dr.resume_grad():
             ray, ray_weight, pos = self.sample_rays(scene, sensor, sampler)
         ray_weight = dr.detach(ray_weight)
@@ -420,18 +442,19 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         with dr.suspend_grad():
             si = dr.detach(si_a)
             valid = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            if static:
-                valid &= on_csg
-            p = mi.Point3f(si.p)
-        # Curves as seen from p (silhouettes relative to p), weighed as seen from the camera.
-        if static:
-            sampled = _sample_static(scene, csg, casters, camera, sampler, None, p)
-        else:
-            sampled = self._sample_curves(scene, csg, casters, camera, sampler, None, p)
-        if sampled is None:
-            return None
-        x, dx, seen, _, pmf, _, _ = sampled
-        valid &= seen
+        return _Vertex(pos, ray_weight, si, p_a, bsdf, on_csg, valid)
+
+    @staticmethod
+    def _seen_from_vertex(vertex, x, dx, pmf, valid, jump, spp, wavelength_weight):
+        """(film position, value, valid) of a discontinuity point x (attached; tangent dx/du,
+        sampled at `pmf` per unit u) that the camera's surface point p (`vertex`) sees at
+        distance r: moving x by dx (p by dp) moves the boundary it draws on p's sphere of
+        directions by ((dx - dp) . m) / r across itself (m normal to the ray p -> x and to the
+        curve's tangent t), and the curve's length there is |t x w| / r per unit length of the
+        curve: the pixel's derivative is the camera's weight times p's f cos times the jump of
+        the light arriving at p across x times both, over the pdf of x. `jump(x, m, r,
+        active)`: that jump, the side towards -m minus the side towards +m."""
+        si, p = vertex.si, vertex.si.p
         with dr.suspend_grad():
             x_d, dx_d = dr.detach(x), dr.detach(dx)
             speed = dr.norm(dx_d)
@@ -444,16 +467,14 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             normal = across / sine
             pdf = pmf / speed                                  # per unit length of the curve
             valid &= (speed > 0) & (sine > 0) & dr.isfinite(pdf) & (pdf > 0) & (distance > 0)
-            reflected = bsdf.eval(mi.BSDFContext(), si, si.to_local(w), valid)    # f cos
+            reflected = vertex.bsdf.eval(mi.BSDFContext(), si, si.to_local(w), valid)    # f cos
             valid &= dr.any(reflected != 0)
-            def radiance(target, active):
-                return self._reflected_radiance(scene, sampler, si, target, active)
-            delta = _jump(radiance, x_d, normal, INDIRECT_OFFSET * distance, valid) * wavelength_weight
+            delta = jump(x_d, normal, distance, valid) * wavelength_weight
             valid &= dr.any(delta != 0)
-            weight = ray_weight * reflected * delta * sine / (dr.square(distance) * pdf * spp)
+            weight = vertex.ray_weight * reflected * delta * sine / (dr.square(distance) * pdf * spp)
             weight = dr.select(valid, weight, 0)
-        motion = (x - x_d) - (p_a - p)
-        return pos, weight * dr.dot(motion, normal), valid
+        motion = (x - x_d) - (vertex.p_a - p)
+        return vertex.pos, weight * dr.dot(motion, normal), valid
 
     def _reflected_radiance(self, scene, sampler, si, target, active):
         """The light arriving at the surface point `si` from `target`'s direction that the
@@ -494,6 +515,42 @@ class _Source:
 
     def __init__(self, viewpoint, lamp, away, incident):
         self.viewpoint, self.lamp, self.away, self.incident = viewpoint, lamp, away, incident
+
+
+class _ShadowEdges:
+    """Points on the edges of a light's shadows (`_shadow_edges`): the casting curve point x
+    (detached), the edge point y (attached) and its tangent dy/du, the surface interaction
+    where the light's ray through x meets the receiver (detached; its point y0), the
+    receiver's BSDF, whether it is a csg shape's, the curves' pmf, validity, and whether the
+    casters are Mitsuba's shapes'."""
+
+    def __init__(self, x, y, dy, receiver, bsdf, on_csg, pmf, valid, static):
+        self.x, self.y, self.dy, self.receiver, self.bsdf = x, y, dy, receiver, bsdf
+        self.on_csg, self.pmf, self.valid, self.static = on_csg, pmf, valid, static
+
+
+class _Vertex:
+    """What a pixel sample's camera ray meets (`_camera_vertex`): the film position, the
+    camera's weight, the surface interaction (detached; its point p) and p attached, the
+    BSDF, whether it is a csg shape's, and validity."""
+
+    def __init__(self, pos, ray_weight, si, p_a, bsdf, on_csg, valid):
+        self.pos, self.ray_weight, self.si, self.p_a = pos, ray_weight, si, p_a
+        self.bsdf, self.on_csg, self.valid = bsdf, on_csg, valid
+
+
+def _edge_in_view(scene, csg, viewer, x, y0, active, gap):
+    """Whether `viewer` sees the shadow's edge point y0 cast by the curve point x: a ray from
+    just in front of y0 towards it is not blocked, and passes x farther than `gap` of x's
+    distance (closer, the edge lies right behind the caster's own contour, a discontinuity
+    the curve's own term counts)."""
+    towards = viewer - y0
+    closest = y0 + towards * (dr.dot(x - y0, towards) / dr.squared_norm(towards))
+    visible = active & (dr.norm(x - closest) > gap * dr.norm(x - viewer))
+    distance = dr.norm(towards)
+    view_ray = mi.Ray3f(y0 + OFFSET * towards, towards / distance)
+    view_ray.maxt = (1.0 - 2.0 * OFFSET) * distance
+    return visible & ~csg.occluded(scene, view_ray, visible)
 
 
 def _shadow_sources(scene, sampler, camera):
