@@ -1,5 +1,6 @@
 """The `csg_prb_projective` integrator: csg_prb plus the boundary derivatives of what the camera
-sees directly and of the shadows lights cast on it."""
+sees directly, of the shadows lights cast on it, and of the curves and shadows the surfaces it
+sees see."""
 from __future__ import annotations
 
 import drjit as dr
@@ -71,8 +72,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
      * - sppi
        - |int|
        - Boundary samples per pixel of the indirectly visible discontinuities: the curves
-         as seen from the surfaces the camera sees, which cut off the light those surfaces
-         receive by reflection; 0 switches them off. (Default: the render call's spp)
+         and the lights' shadows as seen from the surfaces the camera sees, which cut off the
+         light those surfaces receive by reflection; 0 switches them off. (Default: the render call's spp)
 
     `csg_prb`'s derivatives (interior: shading at a fixed visible primitive) plus those of
     the boundaries the camera sees move: silhouettes of sphere, cylinder, cone, torus and
@@ -114,11 +115,14 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     curve point (rays from p either side of it, extrapolated to the curve as above, without
     the emission of the surface they meet: the shadow term counts light that comes straight
     from an emitter) times p's BSDF and the curve's motion normal to itself on p's sphere
-    of directions, relative to p where p moves too. It needs `max_depth` >= 3 (camera, p,
-    the surface that lights p, a light).
+    of directions, relative to p where p moves too. The edges of the lights' shadows move as
+    seen from p too (a sphere's shadow on a sunlit wall that lights the floor the camera
+    sees): the jump across one is the light of that light its receiver reflects towards p,
+    on the side the light reaches (shadow rays from the receiver either side of the edge).
+    It needs `max_depth` >= 3 (camera, p, the surface that lights p, a light).
 
-    Not yet differentiated: curves seen from the later vertices of a path (the second
-    bounce on), and shadows and curves seen in reflections off or through delta BSDFs
+    Not yet differentiated: curves and shadows seen from the later vertices of a path (the
+    second bounce on), and shadows and curves seen in reflections off or through delta BSDFs
     (mirrors, glass). Perspective cameras only.
 
     .. code-block:: python
@@ -210,10 +214,14 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             # A sampler of its own (forked, seeded apart): one lane per pixel sample.
             sampler, spp_indirect = self.prepare(sensor, 0x9E3779B9 ^ seed, spp_indirect, [])
             spectrum = self._wavelengths(sensor, sampler)
-            for caster in [curves] if static is None else [curves, static]:
-                term = self._indirect_term(scene, sensor, csg, caster, camera, sampler, spp_indirect, *spectrum)
-                if term is not None:
-                    terms.append((*term, spectrum[0]))
+            casters = [curves] if static is None else [curves, static]
+            indirect = [self._indirect_term(scene, sensor, csg, caster, camera, sampler, spp_indirect, *spectrum)
+                        for caster in casters]
+            # Every light's shadows, a light at the camera's too: p sees them from elsewhere.
+            for source in _shadow_sources(scene, sampler):
+                indirect += [self._indirect_shadow_term(scene, sensor, csg, caster, source, sampler, spp_indirect,
+                                                        *spectrum) for caster in casters]
+            terms += [(*term, spectrum[0]) for term in indirect if term is not None]
         if not terms:
             return None
         for uv, value, valid, wavelengths in terms:
@@ -427,6 +435,32 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             return _jump(radiance, x_d, normal, INDIRECT_OFFSET * distance, active)
         return self._seen_from_vertex(vertex, x, dx, pmf, valid, jump, spp, wavelength_weight)
 
+    def _indirect_shadow_term(self, scene, sensor, csg, casters, source, sampler, spp, wavelengths,
+                              wavelength_weight):
+        """The edges of the shadows the curves `casters` cast from a light `source`
+        (`_shadow_edges`) as the surfaces the camera sees see them: a sphere's shadow on a lit
+        wall moves, and so does the light the wall reflects onto the floor the camera sees.
+        The estimate is the indirect term's (`_seen_from_vertex`), the jump across an edge
+        point the light of `source` that its receiver reflects towards p, on the lit side
+        (`_shadow_jump`). Mitsuba's shapes' curves count where they cast onto a csg shape
+        or p is on one (else their shadows stand still relative to p)."""
+        vertex = self._camera_vertex(scene, sensor, csg, sampler, wavelengths)
+        edges = self._shadow_edges(scene, csg, casters, source, sampler)
+        if edges is None:
+            return None
+        p = vertex.si.p
+        with dr.suspend_grad():
+            valid = vertex.valid & edges.valid
+            if edges.static:
+                valid &= edges.on_csg | vertex.on_csg
+            # p's own shadow edges (y0 at p) add nothing: p sees them edge-on.
+            valid &= dr.norm(edges.receiver.p - p) > SHADOW_GAP * dr.norm(edges.x - p)
+            valid &= _edge_in_view(scene, csg, p, edges.x, edges.receiver.p, valid, SHADOW_GAP)
+
+        def jump(y, normal, distance, active):
+            return _shadow_jump(scene, csg, edges, source, p, normal, wavelengths, active)
+        return self._seen_from_vertex(vertex, edges.y, edges.dy, edges.pmf, valid, jump, spp, wavelength_weight)
+
     def _camera_vertex(self, scene, sensor, csg, sampler, wavelengths):
         """A camera ray per pixel sample and the surface it meets (`_Vertex`): only a smooth
         BSDF there (not a delta) reflects light from a region of directions."""
@@ -553,9 +587,9 @@ def _edge_in_view(scene, csg, viewer, x, y0, active, gap):
     return visible & ~csg.occluded(scene, view_ray, visible)
 
 
-def _shadow_sources(scene, sampler, camera):
+def _shadow_sources(scene, sampler, camera=None):
     """A `_Source` per emitter whose shadows the camera may see: point and spot lights (not one
-    at the camera, which hides every shadow behind its caster) and directional lights, whose
+    at the `camera`, where given: it hides every shadow behind its caster) and directional lights, whose
     one lamp is the light; area lights, a point sampled on the emitting shape per lane;
     environment lights (`constant`, `envmap`), a direction sampled per lane by the emitter."""
     bbox = scene.bbox()
@@ -573,7 +607,7 @@ def _shadow_sources(scene, sampler, camera):
                 towards = np.array([dr.slice(c) for c in ds.d], np.float64)
                 if mi.has_flag(flags, mi.EmitterFlags.DeltaPosition):
                     where = np.array([dr.slice(c) for c in ds.p], np.float64)
-                    if np.linalg.norm(where - camera) <= 1e-6 * max(1.0, np.linalg.norm(camera)):
+                    if camera is not None and np.linalg.norm(where - camera) <= 1e-6 * max(1.0, np.linalg.norm(camera)):
                         continue
                     sources.append(_Source(where, _point(where), None, _delta_incident(emitter)))
                 else:
@@ -591,6 +625,38 @@ def _shadow_sources(scene, sampler, camera):
                 sources.append(_Source(centre + np.array([0.0, 0.0, far]), it.p + ds.d * far, -ds.d,
                                        _infinite_incident(ds.d, weight)))
     return sources
+
+
+def _shadow_jump(scene, csg, edges, source, viewer, normal, wavelengths, active):
+    """The jump, seen from `viewer`, of the light of `source` across shadow edge points
+    (`edges`, receiver point y0) along the normal `normal` of the edge's image: the light y0
+    reflects towards the viewer, on the side of the edge that the source lights, the side
+    towards -normal minus the side towards +normal. Which side is lit, from shadow rays from
+    the receiver's tangent plane either side of y0 (SHADOW_OFFSET of the caster's distance
+    away), not from rays from the viewer either side: where a receiver lies right next to its
+    caster (a notch's rim grazed by the light), those would measure the jump across the
+    caster's own curve."""
+    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(edges.receiver.p))
+    for name in ("t", "time", "p", "n", "uv", "sh_frame", "dp_du", "dp_dv", "prim_index", "shape"):
+        setattr(si, name, getattr(edges.receiver, name))
+    si.wavelengths = wavelengths
+    y0, n = mi.Point3f(si.p), mi.Vector3f(si.n)
+    w = dr.normalize(viewer - y0)
+    facing = dr.dot(w, n)
+    active = active & (dr.abs(facing) > 1e-6)
+    si.wi = si.to_local(w)
+    shadow_ray, weight = source.incident(si, active)
+    value = edges.bsdf.eval(mi.BSDFContext(), si, si.to_local(shadow_ray.d), active) * weight
+    active &= dr.any(value != 0)
+    # the image normal carried along the ray from the viewer into the receiver's tangent plane
+    side = dr.normalize(normal - w * (dr.dot(normal, n) / facing))
+    step = SHADOW_OFFSET * dr.norm(y0 - edges.x)
+    lit = []
+    for sign in (-1.0, 1.0):
+        si.p = y0 + sign * step * side
+        ray, _ = source.incident(si, active)
+        lit.append(active & ~csg.occluded(scene, ray, active))
+    return dr.select(lit[0], value, 0) - dr.select(lit[1], value, 0)
 
 
 def _jump(radiance, x, normal, offset, active):

@@ -459,14 +459,19 @@ def _black_box():
     # Mitsuba cube and of the wall move relative to it (a weak change: larger pixels, more
     # samples)
     (csg.Box((8.0, 8.0, 0.2)), [0] * 11 + [1], _black_box, (24, 18), 4096),
-], ids=["sphere radius", "sphere z", "notch radius", "rising floor"])
+    # a sphere in the sun's beam above the box, its shadow on the wall: the shadow's edge, seen
+    # from the floor, moves as the sphere grows
+    (csg.Sphere(0.5).translate((0, 1.5, 2.4)), [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], None, (24, 18), 4096),
+], ids=["sphere radius", "sphere z", "notch radius", "rising floor", "shadow on the wall"])
 def test_indirect_shadows_move(model, weights, extra, size, spp):
     """The floor, lit only by light the wall reflects, seen from above; a dark model (or a
     black cube) between them casts a soft indirect shadow. Summed gradients against central
     differences (65536 spp) when written: sphere radius -656.2 / -658.3, height -364.5 /
-    -367.6, notch radius 189.1 / 191.1, rising floor 9.36 / 9.35; without the indirect term
-    (as csg_prb) +46.4, -11.0, 3.9 and 0. The camera sees no curve and no shadow, so the
-    primary and shadow terms are off (they gave exactly csg_prb's image here)."""
+    -367.6, notch radius 189.1 / 191.1, rising floor 9.36 / 9.35, shadow on the wall -179.4 /
+    -180.1 (correlation 0.971); without the indirect term (as csg_prb) +46.4, -11.0, 3.9, 0
+    and +4.8. The shadow on the wall needs the shadows' edges seen from the floor: without
+    them -78.1 (correlation 0.63). The camera sees no curve and no shadow, so the primary
+    and shadow terms are off (they gave exactly csg_prb's image here)."""
     ratio, _ = check(model, "primitive_to_world", weights, spp=spp, fd_spp=65536, size=size, max_depth=3,
                      options={"sppp": 0}, extra=extra, **INDIRECT_VIEW)
     assert not abs(ratio - 1) < 0.5, ratio
@@ -600,7 +605,9 @@ def test_sphere_against_prb_projective_on_its_mesh(parameter, tmp_path):
     (HOLE, [0] * 12 + [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], 2, None, {}),       # the hole's radius
     (csg.Sphere(0.6).translate((0, 1.5, 0.9)), [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], 3, {"sppp": 0},
      INDIRECT_VIEW),                                                               # the indirect term
-], ids=["primary", "indirect"])
+    (csg.Sphere(0.5).translate((0, 1.5, 2.4)), [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], 3, {"sppp": 0},
+     INDIRECT_VIEW),                                               # its shadow on the wall, seen from the floor
+], ids=["primary", "indirect", "indirect shadow"])
 def test_backward_mode_gives_the_forward_derivative(model, weights, max_depth, options, view):
     """The adjoint of the boundary terms: dr.backward of a weighted image sum, dotted with a
     direction, equals the forward derivative along it (same samples)."""
