@@ -296,7 +296,8 @@ def main():
             out += ["Where the derivative is all indirect (`--indirect`, same run and size): a floor lit only by "
                     "a sunlit wall strip above it (the sun travels level with the floor), a dark sphere between "
                     "them out of view, its radius differentiated, max_depth 3. `sppi 0` leaves out "
-                    "csg_prb_projective's indirect term (the curves seen from the surfaces the camera sees); "
+                    "csg_prb_projective's indirect terms (the curves, and the edges of the sun's shadows, seen "
+                    "from the surfaces the camera sees: the scene's rectangles cast edges too); "
                     "Mitsuba's `prb_projective` on the sphere's mesh samples indirect discontinuities "
                     "projectively.", ""]
             out += iteration_table(gradient["indirect"])
