@@ -53,11 +53,13 @@ class CSGPRBIntegrator(RBIntegrator):
 
     @dr.syntax
     def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
-               δL, state_in, active: mi.Bool, max_depth=None, hide_first_emitter=None, **kwargs):
+               δL, state_in, active: mi.Bool, max_depth=None, hide_first_emitter=None, lane_depth=None,
+               **kwargs):
         """Mitsuba's `sample`; `max_depth` and `hide_first_emitter` (the integrator's
         `max_depth` and `hide_emitters` unless given) let csg_prb_projective trace paths that
         continue one from a surface point (one bounce shorter, the emitter their first ray
-        meets left out)."""
+        meets left out); `lane_depth` (per lane, at most `max_depth`) shortens them further
+        where that point lies deeper along a path."""
         primal = mode == dr.ADMode.Primal
         max_depth = self.max_depth if max_depth is None else max_depth
         hide_first = self.hide_emitters if hide_first_emitter is None else hide_first_emitter
@@ -94,6 +96,8 @@ class CSGPRBIntegrator(RBIntegrator):
 
             # ---------------------- Emitter sampling ----------------------
             active_next &= (depth + 1 < max_depth) & si.is_valid()
+            if dr.hint(lane_depth is not None, mode="scalar"):
+                active_next &= depth + 1 < lane_depth
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active_em)
             active_em &= ds.pdf != 0.0

@@ -119,10 +119,12 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     seen from p too (a sphere's shadow on a sunlit wall that lights the floor the camera
     sees): the jump across one is the light of that light its receiver reflects towards p,
     on the side the light reaches (shadow rays from the receiver either side of the edge).
-    It needs `max_depth` >= 3 (camera, p, the surface that lights p, a light).
+    It needs `max_depth` >= 3 (camera, p, the surface that lights p, a light). Above 3, p
+    is also a vertex deeper along the camera's path (the floor that lights the ceiling the
+    camera sees): per sample, the first vertex with probability 1/2, else one of the
+    deeper ones that a light's path can still reach within `max_depth`.
 
-    Not yet differentiated: curves and shadows seen from the later vertices of a path (the
-    second bounce on), and shadows and curves seen in reflections off or through delta BSDFs
+    Not yet differentiated: shadows and curves seen in reflections off or through delta BSDFs
     (mirrors, glass). Perspective cameras only.
 
     .. code-block:: python
@@ -414,9 +416,12 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
 
         `casters`: the csg shapes' curves (a `csg_edges.Curves` per shape), or those of
         Mitsuba's shapes (`csg_edges.StaticCurves`), which stand still but move relative to
-        a p on a moving csg shape (only such p are sampled for them)."""
+        a p on a moving csg shape (only such p are sampled for them).
+
+        p is the camera's surface point, or where max_depth allows, a surface point deeper
+        along the sample's path (`_path_vertex`)."""
         static = isinstance(casters, csg_edges.StaticCurves)
-        vertex = self._camera_vertex(scene, sensor, csg, sampler, wavelengths)
+        vertex = self._path_vertex(scene, sensor, csg, sampler, wavelengths)
         valid = vertex.valid & vertex.on_csg if static else vertex.valid
         p = vertex.si.p
         # Curves as seen from p (silhouettes relative to p), weighed as seen from the camera.
@@ -431,7 +436,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
 
         def jump(x_d, normal, distance, active):
             def radiance(target, active):
-                return self._reflected_radiance(scene, sampler, vertex.si, target, active)
+                return self._reflected_radiance(scene, sampler, vertex.si, target, active, vertex.depth)
             return _jump(radiance, x_d, normal, INDIRECT_OFFSET * distance, active)
         return self._seen_from_vertex(vertex, x, dx, pmf, valid, jump, spp, wavelength_weight)
 
@@ -443,8 +448,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         The estimate is the indirect term's (`_seen_from_vertex`), the jump across an edge
         point the light of `source` that its receiver reflects towards p, on the lit side
         (`_shadow_jump`). Mitsuba's shapes' curves count where they cast onto a csg shape
-        or p is on one (else their shadows stand still relative to p)."""
-        vertex = self._camera_vertex(scene, sensor, csg, sampler, wavelengths)
+        or p is on one (else their shadows stand still relative to p). p as the indirect
+        term's (`_path_vertex`)."""
+        vertex = self._path_vertex(scene, sensor, csg, sampler, wavelengths)
         edges = self._shadow_edges(scene, csg, casters, source, sampler)
         if edges is None:
             return None
@@ -478,6 +484,51 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             valid = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         return _Vertex(pos, ray_weight, si, p_a, bsdf, on_csg, valid)
 
+    @dr.syntax
+    def _path_vertex(self, scene, sensor, csg, sampler, wavelengths):
+        """A surface point along a camera path (`_Vertex`): where max_depth is 3, the camera's
+        (`_camera_vertex`); above, the one at depth k (the camera's surface point is 1),
+        chosen per lane: 1 with probability 1/2, else one of 2 ... K uniformly, K =
+        max_depth - 2 (k, the surface that lights it, a light; DEEPEST_VERTEX where max_depth
+        is infinite). One vertex per sample, not one of each depth: every depth's terms
+        would compile the integrator's path tracer again for its jumps (at max_depth 6 the
+        first pass took 218 s instead of 88). The path to it is sampled as the
+        integrator's (the BSDF at each vertex), its weight the path's over the choice's
+        probability; paths from it are max_depth - k segments long. Ray origins and
+        directions stay detached, so that only the last point moves with the shapes, along
+        its ray (as csg_prb's interior derivatives parametrize paths)."""
+        infinite = self.max_depth == 0xFFFFFFFF
+        deepest = DEEPEST_VERTEX if infinite else self.max_depth - 2
+        if dr.hint(deepest <= 1, mode="scalar"):
+            return self._camera_vertex(scene, sensor, csg, sampler, wavelengths)
+        with dr.resume_grad():
+            ray, ray_weight, pos = self.sample_rays(scene, sensor, sampler)
+        ray = mi.Ray3f(dr.detach(ray))
+        ray.wavelengths = wavelengths
+        u = sampler.next_1d()
+        deeper = u >= 0.5
+        k = dr.select(deeper, 2 + dr.minimum(mi.UInt32((2 * u - 1) * (deepest - 1)), deepest - 2), 1)
+        weight = mi.Spectrum(dr.detach(ray_weight)) * dr.select(deeper, 2 * (deepest - 1), 2)
+        depth = mi.UInt32(1)
+        active = depth < k
+        while dr.hint(active, max_iterations=deepest, label="csg_prb_projective (path to a vertex)"):
+            si, bsdf, _, _, _ = csg.intersect(scene, ray, active)
+            active &= si.is_valid()
+            sample, bsdf_weight = bsdf.sample(mi.BSDFContext(), si, sampler.next_1d(), sampler.next_2d(), active)
+            weight = dr.select(active, weight * bsdf_weight, 0)
+            ray = dr.select(active, si.spawn_ray(si.to_world(sample.wo)), ray)
+            depth += 1
+            active &= dr.any(weight != 0) & (depth < k)
+        ray.wavelengths = wavelengths
+        reached = dr.any(weight != 0) & (depth == k)
+        with dr.resume_grad():
+            si_a, bsdf, on_csg, _, _ = csg.intersect(scene, ray, reached, attached=True)
+            p_a = mi.Point3f(si_a.p)
+        with dr.suspend_grad():
+            si = dr.detach(si_a)
+            valid = reached & si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        return _Vertex(pos, weight, si, p_a, bsdf, on_csg, valid, None if infinite else self.max_depth - k)
+
     @staticmethod
     def _seen_from_vertex(vertex, x, dx, pmf, valid, jump, spp, wavelength_weight):
         """(film position, value, valid) of a discontinuity point x (attached; tangent dx/du,
@@ -510,17 +561,17 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         motion = (x - x_d) - (vertex.p_a - p)
         return vertex.pos, weight * dr.dot(motion, normal), valid
 
-    def _reflected_radiance(self, scene, sampler, si, target, active):
+    def _reflected_radiance(self, scene, sampler, si, target, active, lane_depth=None):
         """The light arriving at the surface point `si` from `target`'s direction that the
         surface met there reflects (its own emission left out), from paths one bounce shorter
-        than the integrator's."""
+        than the integrator's, or `lane_depth` segments long (per lane) where given."""
         ray = si.spawn_ray(dr.normalize(target - si.p))
         # Aimed from the origin spawn_ray moved off the surface: from p itself the ray would
         # pass the curve that far to one side, which offsets close to it cannot afford.
         ray.d = dr.normalize(target - ray.o)
         depth = self.max_depth if self.max_depth == 0xFFFFFFFF else self.max_depth - 1
         L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, active, max_depth=depth,
-                                 hide_first_emitter=True)
+                                 hide_first_emitter=True, lane_depth=lane_depth)
         return dr.select(active, L, 0)
 
     def _radiance(self, scene, sampler, origin, target, wavelengths, active):
@@ -534,6 +585,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
                 f"sppc={self.sppc}, sppp={self.sppp}, sppi={self.sppi}]")
 
 
+# Where max_depth is infinite, the deepest path vertex the curves are seen from.
+DEEPEST_VERTEX = 8
 # A directional light's curves are seen from a point this many scene sizes up its beam:
 # their contours then lie within ~1e-5 of the size of the parallel view's.
 FAR = 1e5
@@ -564,13 +617,14 @@ class _ShadowEdges:
 
 
 class _Vertex:
-    """What a pixel sample's camera ray meets (`_camera_vertex`): the film position, the
-    camera's weight, the surface interaction (detached; its point p) and p attached, the
-    BSDF, whether it is a csg shape's, and validity."""
+    """A surface point p along a camera path (`_camera_vertex`, `_path_vertex`): the film
+    position, the path's weight, the surface interaction (detached) and p attached, the
+    BSDF, whether it is a csg shape's, validity, and how many segments paths from p may have
+    (per lane; None: one fewer than the integrator's)."""
 
-    def __init__(self, pos, ray_weight, si, p_a, bsdf, on_csg, valid):
+    def __init__(self, pos, ray_weight, si, p_a, bsdf, on_csg, valid, depth=None):
         self.pos, self.ray_weight, self.si, self.p_a = pos, ray_weight, si, p_a
-        self.bsdf, self.on_csg, self.valid = bsdf, on_csg, valid
+        self.bsdf, self.on_csg, self.valid, self.depth = bsdf, on_csg, valid, depth
 
 
 def _edge_in_view(scene, csg, viewer, x, y0, active, gap):

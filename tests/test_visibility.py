@@ -477,6 +477,32 @@ def test_indirect_shadows_move(model, weights, extra, size, spp):
     assert not abs(ratio - 1) < 0.5, ratio
 
 
+def _ceiling():
+    """A white ceiling at z = 1.5, facing down over the floor in front of the `wall` scene's
+    model: neither the sun (level with it) nor the wall (above it) lights it directly."""
+    return {"ceiling": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": 0.9},
+                        "to_world": mi.ScalarTransform4f().translate([0, -1.35, 1.5]).rotate([1, 0, 0], 180)
+                        .scale([2.5, 2.15, 1])}}
+
+
+# The camera beneath the ceiling sees only the ceiling, lit by the floor, which the wall lights.
+CEILING_VIEW = {"camera": (0.0, -1.5, 0.3), "target": (0.0, -1.0, 1.5), "wall": True, "extra": _ceiling}
+
+
+def test_curves_seen_from_a_deeper_vertex_move():
+    """The sphere of test_indirect_shadows_move growing, seen only by way of the floor it
+    shades: camera, ceiling, floor, wall, sun (max_depth 4). Its soft shadow on the floor is
+    drawn by its contour as the floor sees it, the second vertex of the camera's paths.
+    Summed gradients against central differences (1048576 spp) when written: -11.84 /
+    -11.94, correlation 0.945; with the curves seen from the camera's first vertex only
+    (the ceiling) +2.63 (correlation 0.16), csg_prb +2.16. Large pixels, many samples: the
+    derivative image is smooth, and half the boundary samples look from the ceiling."""
+    ratio, _ = check(csg.Sphere(0.6).translate((0, 1.5, 0.9)), "primitive_to_world",
+                     [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], spp=32768, fd_spp=1048576, size=(8, 6), max_depth=4,
+                     options={"sppp": 0}, **CEILING_VIEW)
+    assert not abs(ratio - 1) < 0.5, ratio
+
+
 @pytest.mark.parametrize("key, weights", [("primitive_rotation", [0, 0, 1, 0, 0, 0]),
                                           ("primitive_to_world", [0] * 15 + [1] + [0] * 8),
                                           ("primitive_scale", [0, 1])],
@@ -607,7 +633,9 @@ def test_sphere_against_prb_projective_on_its_mesh(parameter, tmp_path):
      INDIRECT_VIEW),                                                               # the indirect term
     (csg.Sphere(0.5).translate((0, 1.5, 2.4)), [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], 3, {"sppp": 0},
      INDIRECT_VIEW),                                               # its shadow on the wall, seen from the floor
-], ids=["primary", "indirect", "indirect shadow"])
+    (csg.Sphere(0.6).translate((0, 1.5, 0.9)), [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], 4, {"sppp": 0},
+     CEILING_VIEW),                                                # curves seen from a deeper vertex
+], ids=["primary", "indirect", "indirect shadow", "deeper vertex"])
 def test_backward_mode_gives_the_forward_derivative(model, weights, max_depth, options, view):
     """The adjoint of the boundary terms: dr.backward of a weighted image sum, dotted with a
     direction, equals the forward derivative along it (same samples)."""
