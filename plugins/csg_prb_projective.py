@@ -25,7 +25,8 @@ CONTOUR_VIEW_OFFSET = 1e-3
 # receiver's shadow rays then pass the caster's contour at about that fraction of their
 # length, and at 1e-5 a float32 sphere test near tangency told the two sides apart only
 # part of the time (the radiance difference came out of the wrong sign for 59 % of the
-# points along part of a sphere's shadow).
+# points along part of a sphere's shadow). Shadow rays from beside a shadow's edge on its
+# receiver (`_shadow_jump`) start this fraction of the caster's distance from the edge.
 SHADOW_OFFSET = 1e-3
 # Rays from a surface point the camera sees pass a curve at this fraction of its distance
 # either side (the indirect term). Measured on a dark box with a notch cut into its top
@@ -122,7 +123,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     It needs `max_depth` >= 3 (camera, p, the surface that lights p, a light). Above 3, p
     is also a vertex deeper along the camera's path (the floor that lights the ceiling the
     camera sees): per sample, the first vertex with probability 1/2, else one of the
-    deeper ones that a light's path can still reach within `max_depth`.
+    deeper ones that a light's path can still reach within `max_depth`, down to the 8th.
 
     Not yet differentiated: shadows and curves seen in reflections off or through delta BSDFs
     (mirrors, glass). Perspective cameras only.
@@ -177,7 +178,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         """The boundary terms as an image attached to the shapes' parameters (its value is 0;
         its derivative is the terms): forward_to or backward from it. The primarily visible
         curves and the shadows they cast from each light onto what the camera sees (`spp`
-        samples per pixel), and the curves seen from what the camera sees (`spp_indirect`)."""
+        samples per pixel), and the curves and shadows seen from the surfaces along the
+        camera's paths (`spp_indirect`)."""
         if spp <= 0 and spp_indirect <= 0:
             return None
         if not sensor.__repr__().startswith("PerspectiveCamera"):
@@ -412,7 +414,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         weight times f cos times the jump of L across x times both, over the pdf of x. The
         jump is the reflected light only (rays from p either side of x without the emission
         of the surface they meet: light straight from an emitter is the shadow term's), from
-        one bounce fewer than the integrator's paths.
+        paths that end where the integrator's would (one bounce fewer from the camera's
+        surface point).
 
         `casters`: the csg shapes' curves (a `csg_edges.Curves` per shape), or those of
         Mitsuba's shapes (`csg_edges.StaticCurves`), which stand still but move relative to
@@ -489,16 +492,18 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         """A surface point along a camera path (`_Vertex`): where max_depth is 3, the camera's
         (`_camera_vertex`); above, the one at depth k (the camera's surface point is 1),
         chosen per lane: 1 with probability 1/2, else one of 2 ... K uniformly, K =
-        max_depth - 2 (k, the surface that lights it, a light; DEEPEST_VERTEX where max_depth
-        is infinite). One vertex per sample, not one of each depth: every depth's terms
+        max_depth - 2 (k, the surface that lights it, a light), at most DEEPEST_VERTEX (curves
+        seen from deeper vertices are left out: their light has come a long way, and a K in
+        the hundreds would leave 1/K of the samples to each depth). One vertex per sample, not one of each depth: every depth's terms
         would compile the integrator's path tracer again for its jumps (at max_depth 6 the
         first pass took 218 s instead of 88). The path to it is sampled as the
         integrator's (the BSDF at each vertex), its weight the path's over the choice's
         probability; paths from it are max_depth - k segments long. Ray origins and
-        directions stay detached, so that only the last point moves with the shapes, along
-        its ray (as csg_prb's interior derivatives parametrize paths)."""
+        directions stay detached (also from BSDF and Mitsuba shape parameters), so that only
+        the last point moves with the shapes, along its ray (as csg_prb's interior
+        derivatives parametrize paths)."""
         infinite = self.max_depth == 0xFFFFFFFF
-        deepest = DEEPEST_VERTEX if infinite else self.max_depth - 2
+        deepest = min(DEEPEST_VERTEX, self.max_depth - 2)
         if dr.hint(deepest <= 1, mode="scalar"):
             return self._camera_vertex(scene, sensor, csg, sampler, wavelengths)
         with dr.resume_grad():
@@ -507,18 +512,20 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         ray.wavelengths = wavelengths
         u = sampler.next_1d()
         deeper = u >= 0.5
-        k = dr.select(deeper, 2 + dr.minimum(mi.UInt32((2 * u - 1) * (deepest - 1)), deepest - 2), 1)
-        weight = mi.Spectrum(dr.detach(ray_weight)) * dr.select(deeper, 2 * (deepest - 1), 2)
+        k = dr.select(deeper, 2 + dr.minimum(mi.UInt32(dr.maximum(2 * u - 1, 0) * (deepest - 1)), deepest - 2), 1)
+        weight = mi.Spectrum(dr.detach(ray_weight)) * dr.select(deeper, mi.Float(2 * (deepest - 1)), mi.Float(2))
         depth = mi.UInt32(1)
         active = depth < k
-        while dr.hint(active, max_iterations=deepest, label="csg_prb_projective (path to a vertex)"):
-            si, bsdf, _, _, _ = csg.intersect(scene, ray, active)
-            active &= si.is_valid()
-            sample, bsdf_weight = bsdf.sample(mi.BSDFContext(), si, sampler.next_1d(), sampler.next_2d(), active)
-            weight = dr.select(active, weight * bsdf_weight, 0)
-            ray = dr.select(active, si.spawn_ray(si.to_world(sample.wo)), ray)
-            depth += 1
-            active &= dr.any(weight != 0) & (depth < k)
+        with dr.suspend_grad():
+            while dr.hint(active, max_iterations=deepest, label="csg_prb_projective (path to a vertex)"):
+                si, bsdf, _, _, _ = csg.intersect(scene, ray, active)
+                active &= si.is_valid()
+                sample, bsdf_weight = bsdf.sample(mi.BSDFContext(), si, sampler.next_1d(), sampler.next_2d(),
+                                                  active)
+                weight = dr.select(active, weight * bsdf_weight, 0)
+                ray = dr.select(active, si.spawn_ray(si.to_world(sample.wo)), ray)
+                depth += 1
+                active &= dr.any(weight != 0) & (depth < k)
         ray.wavelengths = wavelengths
         reached = dr.any(weight != 0) & (depth == k)
         with dr.resume_grad():
@@ -532,12 +539,12 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     @staticmethod
     def _seen_from_vertex(vertex, x, dx, pmf, valid, jump, spp, wavelength_weight):
         """(film position, value, valid) of a discontinuity point x (attached; tangent dx/du,
-        sampled at `pmf` per unit u) that the camera's surface point p (`vertex`) sees at
-        distance r: moving x by dx (p by dp) moves the boundary it draws on p's sphere of
+        sampled at `pmf` per unit u) that a surface point p along a camera path (`vertex`) sees
+        at distance r: moving x by dx (p by dp) moves the boundary it draws on p's sphere of
         directions by ((dx - dp) . m) / r across itself (m normal to the ray p -> x and to the
         curve's tangent t), and the curve's length there is |t x w| / r per unit length of the
-        curve: the pixel's derivative is the camera's weight times p's f cos times the jump of
-        the light arriving at p across x times both, over the pdf of x. `jump(x, m, r,
+        curve: the pixel's derivative is the path's weight up to p times p's f cos times the
+        jump of the light arriving at p across x times both, over the pdf of x. `jump(x, m, r,
         active)`: that jump, the side towards -m minus the side towards +m."""
         si, p = vertex.si, vertex.si.p
         with dr.suspend_grad():
@@ -556,7 +563,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             valid &= dr.any(reflected != 0)
             delta = jump(x_d, normal, distance, valid) * wavelength_weight
             valid &= dr.any(delta != 0)
-            weight = vertex.ray_weight * reflected * delta * sine / (dr.square(distance) * pdf * spp)
+            weight = vertex.path_weight * reflected * delta * sine / (dr.square(distance) * pdf * spp)
             weight = dr.select(valid, weight, 0)
         motion = (x - x_d) - (vertex.p_a - p)
         return vertex.pos, weight * dr.dot(motion, normal), valid
@@ -585,7 +592,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
                 f"sppc={self.sppc}, sppp={self.sppp}, sppi={self.sppi}]")
 
 
-# Where max_depth is infinite, the deepest path vertex the curves are seen from.
+# The deepest path vertex the curves are seen from (`_path_vertex`).
 DEEPEST_VERTEX = 8
 # A directional light's curves are seen from a point this many scene sizes up its beam:
 # their contours then lie within ~1e-5 of the size of the parallel view's.
@@ -622,8 +629,8 @@ class _Vertex:
     BSDF, whether it is a csg shape's, validity, and how many segments paths from p may have
     (per lane; None: one fewer than the integrator's)."""
 
-    def __init__(self, pos, ray_weight, si, p_a, bsdf, on_csg, valid, depth=None):
-        self.pos, self.ray_weight, self.si, self.p_a = pos, ray_weight, si, p_a
+    def __init__(self, pos, path_weight, si, p_a, bsdf, on_csg, valid, depth=None):
+        self.pos, self.path_weight, self.si, self.p_a = pos, path_weight, si, p_a
         self.bsdf, self.on_csg, self.valid, self.depth = bsdf, on_csg, valid, depth
 
 
