@@ -478,14 +478,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         ray_weight = dr.detach(ray_weight)
         ray = mi.Ray3f(dr.detach(ray))
         ray.wavelengths = wavelengths
-        # The surface the camera sees, attached where it is a csg shape's (it may move too).
-        with dr.resume_grad():
-            si_a, bsdf, on_csg, _, _ = csg.intersect(scene, ray, mi.Bool(True), attached=True)
-            p_a = mi.Point3f(si_a.p)
-        with dr.suspend_grad():
-            si = dr.detach(si_a)
-            valid = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        return _Vertex(pos, ray_weight, si, p_a, bsdf, on_csg, valid)
+        return _vertex_at(scene, csg, ray, mi.Bool(True), pos, ray_weight)
 
     @dr.syntax
     def _path_vertex(self, scene, sensor, csg, sampler, wavelengths):
@@ -494,11 +487,11 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         chosen per lane: 1 with probability 1/2, else one of 2 ... K uniformly, K =
         max_depth - 2 (k, the surface that lights it, a light), at most DEEPEST_VERTEX (curves
         seen from deeper vertices are left out: their light has come a long way, and a K in
-        the hundreds would leave 1/K of the samples to each depth). One vertex per sample, not one of each depth: every depth's terms
-        would compile the integrator's path tracer again for its jumps (at max_depth 6 the
-        first pass took 218 s instead of 88). The path to it is sampled as the
-        integrator's (the BSDF at each vertex), its weight the path's over the choice's
-        probability; paths from it are max_depth - k segments long. Ray origins and
+        the hundreds would leave 1/K of the samples to each depth). One vertex per sample,
+        not one of each depth: every depth's terms would compile the integrator's path
+        tracer again for its jumps (at max_depth 6 the first pass took 218 s instead of 88).
+        The path to it is sampled as the integrator's (the BSDF at each vertex), its weight
+        the path's over the choice's probability; paths from it are max_depth - k segments long. Ray origins and
         directions stay detached (also from BSDF and Mitsuba shape parameters), so that only
         the last point moves with the shapes, along its ray (as csg_prb's interior
         derivatives parametrize paths)."""
@@ -528,13 +521,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
                 active &= dr.any(weight != 0) & (depth < k)
         ray.wavelengths = wavelengths
         reached = dr.any(weight != 0) & (depth == k)
-        with dr.resume_grad():
-            si_a, bsdf, on_csg, _, _ = csg.intersect(scene, ray, reached, attached=True)
-            p_a = mi.Point3f(si_a.p)
-        with dr.suspend_grad():
-            si = dr.detach(si_a)
-            valid = reached & si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        return _Vertex(pos, weight, si, p_a, bsdf, on_csg, valid, None if infinite else self.max_depth - k)
+        return _vertex_at(scene, csg, ray, reached, pos, weight, None if infinite else self.max_depth - k)
 
     @staticmethod
     def _seen_from_vertex(vertex, x, dx, pmf, valid, jump, spp, wavelength_weight):
@@ -634,6 +621,19 @@ class _Vertex:
         self.bsdf, self.on_csg, self.valid, self.depth = bsdf, on_csg, valid, depth
 
 
+def _vertex_at(scene, csg, ray, active, pos, path_weight, depth=None):
+    """The `_Vertex` where `ray` (detached) meets a surface, attached where it is a csg
+    shape's (it may move too): only a smooth BSDF there (not a delta) reflects light from a
+    region of directions."""
+    with dr.resume_grad():
+        si_a, bsdf, on_csg, _, _ = csg.intersect(scene, ray, active, attached=True)
+        p_a = mi.Point3f(si_a.p)
+    with dr.suspend_grad():
+        si = dr.detach(si_a)
+        valid = active & si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+    return _Vertex(pos, path_weight, si, p_a, bsdf, on_csg, valid, depth)
+
+
 def _edge_in_view(scene, csg, viewer, x, y0, active, gap):
     """Whether `viewer` sees the shadow's edge point y0 cast by the curve point x: a ray from
     just in front of y0 towards it is not blocked, and passes x farther than `gap` of x's
@@ -697,9 +697,7 @@ def _shadow_jump(scene, csg, edges, source, viewer, normal, wavelengths, active)
     away), not from rays from the viewer either side: where a receiver lies right next to its
     caster (a notch's rim grazed by the light), those would measure the jump across the
     caster's own curve."""
-    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(edges.receiver.p))
-    for name in ("t", "time", "p", "n", "uv", "sh_frame", "dp_du", "dp_dv", "prim_index", "shape"):
-        setattr(si, name, getattr(edges.receiver, name))
+    si = mi.SurfaceInteraction3f(edges.receiver)      # a copy: its wi and p change below
     si.wavelengths = wavelengths
     y0, n = mi.Point3f(si.p), mi.Vector3f(si.n)
     w = dr.normalize(viewer - y0)
