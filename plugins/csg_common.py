@@ -6,7 +6,7 @@ import mitsuba as mi
 
 from mitsuba_csg.engine.device import upload
 from mitsuba_csg.engine.grouping import group_trees
-from mitsuba_csg.engine.hit_geometry import attached_hit, surface_coordinates
+from mitsuba_csg.engine.hit_geometry import attached_hit, hit_normal, surface_coordinates
 from mitsuba_csg.queries import Prepared, trace_rays
 
 from . import integrator_guard
@@ -77,52 +77,74 @@ class SceneCSG:
         bsdf = si.bsdf(ray)
         if not self.csg:
             return si, bsdf, mi.Bool(False), mi.UInt32(0), mi.UInt32(0)
-        prepared, solid_of_prim, prim_offset = self._traced()
-        hits = trace_rays(prepared, ray.o, ray.d, 0.0, dr.detach(dr.minimum(ray.maxt, si.t)), active=active,
-                          start_prim=start_prim)
+        hits = self.trace(ray, dr.minimum(ray.maxt, si.t), active, start_prim)
         csg_hit = mi.Bool(active & (hits.t < si.t) & dr.isfinite(hits.t))
-        t = mi.Float(hits.t)
-        n = mi.Normal3f(hits.normal)
-        prim = mi.UInt32(hits.prim)          # in the traced tree: all shapes' primitives one after another
+        csg_si, csg_bsdf, local_prim, solid = self.interaction(ray, hits.t, hits.prim, hits.info, csg_hit, attached,
+                                                               hits.normal)
+        si = dr.select(csg_hit, csg_si, si)
+        bsdf = dr.select(csg_hit, csg_bsdf, bsdf)
+        return si, bsdf, csg_hit, dr.select(csg_hit, local_prim, 0), dr.select(csg_hit, solid, 0)
+
+    def traced_tree(self):
+        """The device tree `trace` walks (primitives numbered as its hits name them)."""
+        return self._traced()[0].tree
+
+    def trace(self, ray: mi.Ray3f, maxt, active, start_prim=None):
+        """The CSG shapes' first hits along `ray` up to `maxt` (`RayHits`: t, the traced
+        tree's primitive, and the info word with the hit's face), Mitsuba's shapes ignored."""
+        return trace_rays(self._traced()[0], ray.o, ray.d, 0.0, dr.detach(maxt), active=active, start_prim=start_prim)
+
+    def interaction(self, ray: mi.Ray3f, t, prim, info, active, attached: bool = False, normal=None):
+        """The surface interaction of a CSG shape at ray(t) on face `info` of the traced
+        tree's primitive `prim` (as `trace` gives them): (si, bsdf, the shape's own primitive,
+        which shape). The point need not be where that face wins along the ray: an edge's
+        point gets the frame and BSDF of either face that meets there. `attached` as in
+        `intersect`; `normal`: the face's normal there, where the trace gave it already."""
+        prepared, solid_of_prim, prim_offset = self._traced()
+        t = mi.Float(t)
+        if normal is None:
+            normal = hit_normal(prepared.tree, prim, info, ray.o, ray.d, dr.detach(t), active)
+        n = mi.Normal3f(normal)
+        prim = mi.UInt32(prim)               # in the traced tree: all shapes' primitives one after another
         p = ray(t)
         if solid_of_prim is None:
             solid, local_prim = mi.UInt32(0), prim
         else:
-            solid = dr.gather(mi.UInt32, solid_of_prim, prim, csg_hit)
-            local_prim = prim - dr.gather(mi.UInt32, prim_offset, solid, csg_hit)
-        uv, dp_du, dp_dv = surface_coordinates(prepared.tree, hits.prim, hits.info, ray.o, ray.d,
-                                               dr.detach(dr.select(csg_hit, t, 0.0)), csg_hit)
+            solid = dr.gather(mi.UInt32, solid_of_prim, prim, active)
+            local_prim = prim - dr.gather(mi.UInt32, prim_offset, solid, active)
+        uv, dp_du, dp_dv = surface_coordinates(prepared.tree, prim, info, ray.o, ray.d,
+                                               dr.detach(dr.select(active, t, 0.0)), active)
         shape_ptr = mi.ShapePtr(self.csg[0])
+        bsdf = dr.zeros(mi.BSDFPtr, dr.width(ray.d))
         for k, shape in enumerate(self.csg):
-            on_k = csg_hit & (solid == k)
+            on_k = active & (solid == k)
             if attached:
                 t_k, p_k, n_k = attached_hit(shape.primitive_to_world, shape.prepared.tree, local_prim,
-                                             mi.UInt32(hits.info), dr.select(on_k, t, 0.0), ray.o, ray.d, on_k)
+                                             mi.UInt32(info), dr.select(on_k, t, 0.0), ray.o, ray.d, on_k)
                 t, p, n = (dr.select(on_k, mi.Float(t_k), t), dr.select(on_k, mi.Point3f(p_k), p),
                            dr.select(on_k, mi.Normal3f(n_k), n))
             bsdf = dr.select(on_k, shape.prim_bsdf(local_prim, on_k), bsdf)
             shape_ptr = dr.select(on_k, mi.ShapePtr(shape), shape_ptr)
         dp_du, dp_dv = mi.Vector3f(dp_du), mi.Vector3f(dp_dv)
-        csg_si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray.d))
-        csg_si.t = t
-        csg_si.p = p
-        csg_si.n = n
-        csg_si.uv = mi.Point2f(uv)
-        csg_si.dp_du, csg_si.dp_dv = dp_du, dp_dv
+        si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray.d))
+        si.t = t
+        si.p = p
+        si.n = n
+        si.uv = mi.Point2f(uv)
+        si.dp_du, si.dp_dv = dp_du, dp_dv
         # The shading frame's tangent follows dp_du (Gram-Schmidt against n), as Mitsuba's
         # shapes set it; where dp_du vanishes (a sphere's pole) any frame about n.
         tangent = dp_du - n * dr.dot(n, dp_du)
         usable = dr.squared_norm(tangent) > 1e-20 * dr.squared_norm(dp_du) + 1e-30
         frame = mi.Frame3f(n)
         s_axis = dr.select(usable, dr.normalize(tangent), frame.s)
-        csg_si.sh_frame = mi.Frame3f(s_axis, dr.cross(n, s_axis), n)
-        csg_si.wi = csg_si.to_local(-ray.d)
-        csg_si.prim_index = local_prim
-        csg_si.shape = shape_ptr
-        csg_si.time = ray.time
-        csg_si.wavelengths = ray.wavelengths
-        si = dr.select(csg_hit, csg_si, si)
-        return si, bsdf, csg_hit, dr.select(csg_hit, local_prim, 0), dr.select(csg_hit, solid, 0)
+        si.sh_frame = mi.Frame3f(s_axis, dr.cross(n, s_axis), n)
+        si.wi = si.to_local(-ray.d)
+        si.prim_index = local_prim
+        si.shape = shape_ptr
+        si.time = ray.time
+        si.wavelengths = ray.wavelengths
+        return si, bsdf, local_prim, solid
 
     def occluded(self, scene: mi.Scene, ray: mi.Ray3f, active, start_prim=None):
         """Shadow test of `ray` (up to ray.maxt) against Mitsuba's shapes and the CSG shapes;

@@ -54,12 +54,15 @@ class CSGPRBIntegrator(RBIntegrator):
     @dr.syntax
     def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
                δL, state_in, active: mi.Bool, max_depth=None, hide_first_emitter=None, lane_depth=None,
-               **kwargs):
+               first=None, **kwargs):
         """Mitsuba's `sample`; `max_depth` and `hide_first_emitter` (the integrator's
         `max_depth` and `hide_emitters` unless given) let csg_prb_projective trace paths that
         continue one from a surface point (one bounce shorter, the emitter their first ray
         meets left out); `lane_depth` (per lane, at most `max_depth`) shortens them further
-        where that point lies deeper along a path."""
+        where that point lies deeper along a path. `first` (primal only): (si, bsdf, mask), a
+        surface interaction and its BSDF where the path's first vertex is given instead of
+        found along `ray` (per lane where mask holds): csg_prb_projective's radiance leaving
+        a crease's point from either face."""
         primal = mode == dr.ADMode.Primal
         max_depth = self.max_depth if max_depth is None else max_depth
         hide_first = self.hide_emitters if hide_first_emitter is None else hide_first_emitter
@@ -80,11 +83,15 @@ class CSGPRBIntegrator(RBIntegrator):
         si_prev = dr.zeros(mi.SurfaceInteraction3f)
         bsdf_pdf_prev = mi.Float(1.0)
         bsdf_delta_prev = mi.Bool(True)
+        given = mi.Bool(active & first[2]) if first is not None else mi.Bool(False)
 
         while dr.hint(active, max_iterations=max_depth, label=f"csg_prb ({mode.name})"):
             active_next = mi.Bool(active)
             with dr.resume_grad(when=not primal):
-                si, bsdf, _, _, _ = csg.intersect(scene, ray, active, attached=not primal)
+                si, bsdf, _, _, _ = csg.intersect(scene, ray, active & ~given, attached=not primal)
+            if dr.hint(first is not None, mode="scalar"):
+                si = dr.select(given, first[0], si)
+                bsdf = dr.select(given, first[1], bsdf)
 
             # ---------------------- Direct emission ----------------------
             ds = mi.DirectionSample3f(scene, si=si, ref=si_prev)
@@ -156,6 +163,7 @@ class CSGPRBIntegrator(RBIntegrator):
                         δL += dr.forward_to(Lo)
 
             ray = ray_next
+            given = mi.Bool(False)
             depth[si.is_valid()] += 1
             active = active_next
 

@@ -7,7 +7,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mitsuba_csg.engine import layout as K
 from mitsuba_csg.engine.backend import owned
+from mitsuba_csg.engine.hit_geometry import face_residual, hit_normal
 
 from . import csg_edges
 from .csg_common import SceneCSG
@@ -37,6 +39,12 @@ INDIRECT_OFFSET = 3e-5
 # A camera ray to a shadow's edge passing its casting point closer than this fraction of the
 # point's distance sees the edge right behind the caster's own contour.
 SHADOW_GAP = 1e-3
+# A face found beside a curve point passes through it where the point lies within this of
+# the face's surface, in units of the face's canonical shape (a unit sphere, cube, ...).
+FACE_GAP = 1e-4
+# A face whose normal at a curve point makes a cosine below this with the line of sight is
+# seen edge-on there (a contour): its limit at the curve is left to rays beside the point.
+CONTOUR_COSINE = 1e-3
 # (offset factor, weight) pairs: the differences at OFFSET and 4 OFFSET extrapolated to 0 for a
 # difference D(s) = D0 + c sqrt(s) + O(s): beside a contour the surface is seen at grazing
 # incidence, its cosine (hence its shading) grows like the square root of the offset.
@@ -88,12 +96,16 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     surfaces by Newton steps).
     Points on those curves are sampled in proportion to their length in the image, each
     moving with the shapes' `primitive_to_world` (and so with the named parameters); the
-    estimate is the radiance difference across the curve (camera rays either side of it, at
-    two offsets extrapolated to the curve) times the curve's motion normal to itself in the
-    image (Mitsuba's `prb_projective` treats its own meshes the same way; Li et al. 2018's
-    edge sampling). A curve point the camera does not see (a ray from it towards the camera
-    is blocked) adds nothing, and one that is not on the solid's boundary has no radiance
-    difference across it. Forward and backward mode.
+    estimate is the radiance difference across the curve times the curve's motion normal to
+    itself in the image (Mitsuba's `prb_projective` treats its own meshes the same way; Li
+    et al. 2018's edge sampling). Camera rays passing the point either side name the faces
+    there: a face that passes through the point and faces the camera gives the radiance
+    leaving the point itself from that face (with its frame and BSDF), the side where the
+    solid's surface lies elsewhere (past an occluding edge) what the ray beside the point
+    meets, and a contour, whose face is seen edge-on, rays either side at two offsets
+    extrapolated to the curve. A curve point the camera does not see (a ray from it towards
+    the camera is blocked) adds nothing, nor does one off the solid's boundary (a hole's
+    sphere's contour in the air in front of the face it cuts). Forward and backward mode.
 
     Shadows: the same curves, seen from a light, cast the edges of shadows where the light's
     rays through them meet a surface (the floor, another csg shape, the solid itself); the
@@ -281,7 +293,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         return x, dx, valid, kind, pmf, a, solid
 
     def _difference(self, scene, sampler, camera, sensor, y, dy, pmf, valid, wavelengths, wavelength_weight, spp,
-                    offset=OFFSET, radiance=None):
+                    offset=OFFSET, radiance=None, jump=None):
         """(film position, value, valid) of the boundary term of an image curve through y
         (attached) with tangent dy/du sampled at `pmf`: the radiance difference across it,
         from camera rays either side at offsets d and 4 d extrapolated to the curve
@@ -291,7 +303,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         kernel's tie window; `offset` sets it), times the film Jacobian, over the pdf; its derivative is the
         term (the curve's motion normal to itself, Mitsuba's own sensor Jacobian). `radiance(target,
         active)`: what the camera sees through `target` (default: the integrator's estimate of
-        all of it; a shadow's edge needs only the light that casts it)."""
+        all of it; a shadow's edge needs only the light that casts it). `jump(y, normal, offset,
+        active)`: the jump across the curve, where not `_jump` of that radiance."""
         cam = _point(camera)
         with dr.suspend_grad():
             y_d, dy_d = dr.detach(y), dr.detach(dy)
@@ -314,7 +327,11 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             if radiance is None:
                 def radiance(target, active):
                     return self._radiance(scene, sampler, cam, target, wavelengths, active)
-            delta = _jump(radiance, y_d, normal, offset, valid) * wavelength_weight
+            if jump is None:
+                delta = _jump(radiance, y_d, normal, offset, valid)
+            else:
+                delta = jump(y_d, normal, offset, valid)
+            delta *= wavelength_weight
             valid &= dr.any(delta != 0)
             weight = delta * jacobian / pdf / spp
         # Moving the curve by v . n in the image replaces the outside radiance by the inside.
@@ -326,8 +343,64 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         if sampled is None:
             return None
         x, dx, valid, _, pmf, _, _ = sampled
+        cam = _point(camera)
+
+        def jump(y, normal, offset, active):
+            return self._seen_jump(scene, csg, sampler, cam, y, normal, offset, wavelengths, active)
         return self._difference(scene, sampler, camera, sensor, x, dx, pmf, valid, wavelengths, wavelength_weight,
-                                spp)
+                                spp, jump=jump)
+
+    def _seen_jump(self, scene, csg, sampler, camera, x, normal, offset, wavelengths, active):
+        """The jump of the radiance the camera sees across the curve point x (the side
+        towards -normal minus the side towards +normal). Camera rays passing x at `offset`
+        either side name the faces there.
+
+        Only a point on the solid's boundary has one: a face that a ray beside x meets passes
+        through x, and the solid lies beneath it there (a point a little into the face's side
+        of x and under it is inside). Elsewhere no jump, even where rays beside x would
+        measure one: a hole's sphere's contour, in the air just in front of the face it cuts,
+        runs along the visible rim, within `offset` of it in the image near where the two
+        touch, and rays beside it would count the rim's jump a second time.
+
+        The limits at the curve, taken at x itself where they can be: a face that passes
+        through x and faces the camera gives the radiance leaving x from that face, with its
+        own frame and BSDF; across an edge whose other face turns away (an occluding edge),
+        the other side is what the ray through x meets beyond x. So a crease seen from both
+        sides (a hole's rim above the cavity wall beneath it, a box's edge between two
+        visible faces) is the difference of two faces' radiance at x. Beside a face seen
+        nearly edge-on, rays at an offset meet it far from x, or miss it for the face
+        behind (where a hole's rim meets the contour of its sphere), and no extrapolation in
+        the offset mends that. Contours (the face at x seen edge-on) keep `_jump` of rays
+        either side, extrapolated to the curve."""
+        at_x, distance, sides, near, on_boundary, normals = _faces_beside(csg, camera, x, normal, offset, active)
+        at_x.wavelengths = wavelengths
+        crease = on_boundary & near[0] & near[1]
+        crease &= (sides[0].prim != sides[1].prim) | (K.info_face(sides[0].info) != K.info_face(sides[1].info))
+        # One face at x faces the camera, the other side lies elsewhere: what the camera's ray
+        # passing x on that side meets (that surface is not seen edge-on there, as a
+        # contour's face is: no extrapolation in the offset needed; and not the ray through x
+        # itself, whose far surface's shadow rays towards a lamp at the camera would graze x).
+        edge = on_boundary & ~crease & (near[0] ^ near[1])
+        exact = crease | edge
+        # Paths leave x from just outside both faces (outside the solid whether the edge
+        # is convex or concave: from one face's side only, a concave edge's other face would
+        # hide the light): from x along the faces' mean normal, or the visible one's.
+        away = dr.normalize(dr.select(crease, normals[0] + normals[1], dr.select(near[0], normals[0], normals[1])))
+        leaving = []
+        for sign, side, at_face in zip((-1.0, 1.0), sides, near):
+            at_face = at_face & exact
+            si, bsdf, _, _ = csg.interaction(at_x, distance, side.prim, side.info, at_face)
+            si.p = x + offset * away
+            passing = mi.Ray3f(camera, dr.normalize(x + sign * offset * normal - camera))
+            passing.wavelengths = wavelengths
+            L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, passing, None, None, exact,
+                                     first=(si, bsdf, at_face))
+            leaving.append(dr.select(exact, L, 0))
+
+        def radiance(target, lanes):
+            return self._radiance(scene, sampler, camera, target, wavelengths, lanes)
+        beside = _jump(radiance, x, normal, offset, on_boundary & ~exact)
+        return dr.select(exact, leaving[0] - leaving[1], beside)
 
     def _shadow_term(self, scene, sensor, csg, casters, camera, source, sampler, spp, wavelengths,
                      wavelength_weight):
@@ -716,6 +789,36 @@ def _shadow_jump(scene, csg, edges, source, viewer, normal, wavelengths, active)
         ray, _ = source.incident(si, active)
         lit.append(active & ~csg.occluded(scene, ray, active))
     return dr.select(lit[0], value, 0) - dr.select(lit[1], value, 0)
+
+
+def _faces_beside(csg, camera, x, normal, offset, active):
+    """The faces the camera sees beside the curve point x (`_seen_jump`): (the camera's ray
+    through x, x's distance, the csg hits of the rays passing x at `offset` towards -normal
+    and +normal, whether each hit's face passes through x and faces the camera there, and
+    whether x lies on the solid's boundary, and each face's normal at x)."""
+    towards = x - camera
+    distance = dr.norm(towards)
+    at_x = mi.Ray3f(camera, towards / distance)
+    tree = csg.traced_tree()
+    sides, near, normals = [], [], []
+    on_boundary = mi.Bool(False)
+    for sign in (-1.0, 1.0):
+        side = csg.trace(mi.Ray3f(camera, dr.normalize(x + sign * offset * normal - camera)), dr.inf, active)
+        met = active & dr.isfinite(side.t)
+        n = mi.Vector3f(hit_normal(tree, side.prim, side.info, at_x.o, at_x.d, distance, met))
+        passes = met & (face_residual(tree, side.prim, side.info, at_x.o, at_x.d, distance, met) < FACE_GAP)
+        # a point on that face's side of x, a little into the face and under it (at a
+        # contour, where the face's normal is the curve's in the image, just under it)
+        along = sign * normal - n * dr.dot(sign * normal, n)
+        length = dr.norm(along)
+        along = dr.select(length > 0.1, along / length, 0)
+        probe = x + offset * (2.0 * along - 0.5 * n)
+        out = csg.trace(mi.Ray3f(probe, -n), dr.inf, passes)
+        on_boundary |= passes & dr.isfinite(out.t) & (K.info_class(mi.UInt32(out.info)) != K.ENTER)
+        sides.append(side)
+        near.append(passes & (dr.dot(n, at_x.d) < -CONTOUR_COSINE))
+        normals.append(n)
+    return at_x, distance, sides, near, on_boundary, normals
 
 
 def _jump(radiance, x, normal, offset, active):

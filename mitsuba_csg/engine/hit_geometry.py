@@ -35,7 +35,7 @@ def _face_plane(m, planes, shape, plane_start, info, active):
 def _hit_in_primitive(tree, prim, info, o, d, t, active):
     """The hit at o + t d in primitive `prim`'s canonical frame: (rows of scene -> canonical,
     shape, params, plane start, canonical point, face, face plane, surface gradient there,
-    the ray's unit direction in the scene frame)."""
+    the ray's unit direction in the scene frame, the face's implicit function there)."""
     b = tree.b
     rows, shape, param, plane_start, _ = gather_prim(b, tree, prim, active)
     o, d, k = scene_rays(tree, o, d)
@@ -43,20 +43,29 @@ def _hit_in_primitive(tree, prim, info, o, d, t, active):
     p4 = b.Array4f(p.x, p.y, p.z, 1.0)
     x = b.Array3f(dr.dot(rows[0], p4), dr.dot(rows[1], p4), dr.dot(rows[2], p4))
     face, plane = _face_plane(b.module, tree.planes, shape, plane_start, info, active)
-    _, grad = surface_function(b.module, shape, face, param, plane, x)
-    return rows, shape, param, plane_start, x, face, plane, grad, d
+    g, grad = surface_function(b.module, shape, face, param, plane, x)
+    return rows, shape, param, plane_start, x, face, plane, grad, d, g
 
 
 def hit_normal(tree, prim, info, o, d, t, active):
     """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`."""
     b = tree.b
-    rows, _, _, _, _, _, _, n_local, d = _hit_in_primitive(tree, prim, info, o, d, t, active)
+    rows, _, _, _, _, _, _, n_local, d, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
     n = _normal_to_world(b, rows, n_local)
     n = dr.select(K.info_flipped(info), -n, n) * dr.rsqrt(dr.squared_norm(n))
     # At a cone apex the surface has no normal: face the ray (outward for its hit class).
     facing = dr.normalize(dr.select(K.info_class(info) == K.ENTER, -d, d))
     n = dr.select(dr.isfinite(n.x) & dr.isfinite(n.y) & dr.isfinite(n.z), n, facing)
     return dr.select(active, n, 0.0)
+
+
+def face_residual(tree, prim, info, o, d, t, active):
+    """How far o + t d lies off the surface of face `info` of primitive `prim`: |g| / |grad g|
+    of the face's implicit function in the primitive's canonical frame (about the distance
+    from the surface there, in units of the canonical shape, near it). Tells whether a face
+    found along one ray passes through a point of another (the point of an edge)."""
+    *_, grad, _, g = _hit_in_primitive(tree, prim, info, o, d, t, active)
+    return dr.select(active, dr.abs(g) * dr.rsqrt(dr.squared_norm(grad)), dr.inf)
 
 
 def attached_hit(to_world, tree, prim, info, t, o, d, active):
@@ -106,7 +115,7 @@ def surface_coordinates(tree, prim, info, o, d, t, active):
     """
     b = tree.b
     m = b.module
-    rows, shape, param, plane_start, x, face, plane, grad, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
+    rows, shape, param, plane_start, x, face, plane, grad, _, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
     zero = dr.zeros(b.Float, dr.width(x.x))
     two_pi, pi = 2.0 * dr.pi, dr.pi
 
