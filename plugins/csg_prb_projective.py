@@ -9,7 +9,7 @@ import numpy as np
 
 from mitsuba_csg.engine import layout as K
 from mitsuba_csg.engine.backend import owned
-from mitsuba_csg.engine.hit_geometry import face_residual, hit_normal
+from mitsuba_csg.engine.hit_geometry import face_at
 
 from . import csg_edges
 from .csg_common import SceneCSG
@@ -365,9 +365,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         The limits at the curve, taken at x itself where they can be: a face that passes
         through x and faces the camera gives the radiance leaving x from that face, with its
         own frame and BSDF; across an edge whose other face turns away (an occluding edge),
-        the other side is what the ray through x meets beyond x. So a crease seen from both
-        sides (a hole's rim above the cavity wall beneath it, a box's edge between two
-        visible faces) is the difference of two faces' radiance at x. Beside a face seen
+        the other side is what the camera's ray passing x on that side meets. So a crease
+        seen from both sides (a hole's rim above the cavity wall beneath it, a box's edge
+        between two visible faces) is the difference of two faces' radiance at x. Beside a face seen
         nearly edge-on, rays at an offset meet it far from x, or miss it for the face
         behind (where a hole's rim meets the contour of its sphere), and no extrapolation in
         the offset mends that. Contours (the face at x seen edge-on) keep `_jump` of rays
@@ -387,9 +387,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         # hide the light): from x along the faces' mean normal, or the visible one's.
         away = dr.normalize(dr.select(crease, normals[0] + normals[1], dr.select(near[0], normals[0], normals[1])))
         leaving = []
-        for sign, side, at_face in zip((-1.0, 1.0), sides, near):
+        for sign, side, at_face, n in zip((-1.0, 1.0), sides, near, normals):
             at_face = at_face & exact
-            si, bsdf, _, _ = csg.interaction(at_x, distance, side.prim, side.info, at_face)
+            si, bsdf, _, _ = csg.interaction(at_x, distance, side.prim, side.info, at_face, normal=n)
             si.p = x + offset * away
             passing = mi.Ray3f(camera, dr.normalize(x + sign * offset * normal - camera))
             passing.wavelengths = wavelengths
@@ -805,8 +805,9 @@ def _faces_beside(csg, camera, x, normal, offset, active):
     for sign in (-1.0, 1.0):
         side = csg.trace(mi.Ray3f(camera, dr.normalize(x + sign * offset * normal - camera)), dr.inf, active)
         met = active & dr.isfinite(side.t)
-        n = mi.Vector3f(hit_normal(tree, side.prim, side.info, at_x.o, at_x.d, distance, met))
-        passes = met & (face_residual(tree, side.prim, side.info, at_x.o, at_x.d, distance, met) < FACE_GAP)
+        n, residual = face_at(tree, side.prim, side.info, at_x.o, at_x.d, distance, met)
+        n = mi.Vector3f(n)
+        passes = met & (residual < FACE_GAP)
         # a point on that face's side of x, a little into the face and under it (at a
         # contour, where the face's normal is the curve's in the image, just under it)
         along = sign * normal - n * dr.dot(sign * normal, n)

@@ -47,10 +47,8 @@ def _hit_in_primitive(tree, prim, info, o, d, t, active):
     return rows, shape, param, plane_start, x, face, plane, grad, d, g
 
 
-def hit_normal(tree, prim, info, o, d, t, active):
-    """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`."""
-    b = tree.b
-    rows, _, _, _, _, _, _, n_local, d, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
+def _solid_normal(b, rows, n_local, info, d, active):
+    """The world-space outward unit normal of the CSG solid from a face's canonical gradient."""
     n = _normal_to_world(b, rows, n_local)
     n = dr.select(K.info_flipped(info), -n, n) * dr.rsqrt(dr.squared_norm(n))
     # At a cone apex the surface has no normal: face the ray (outward for its hit class).
@@ -59,13 +57,21 @@ def hit_normal(tree, prim, info, o, d, t, active):
     return dr.select(active, n, 0.0)
 
 
-def face_residual(tree, prim, info, o, d, t, active):
-    """How far o + t d lies off the surface of face `info` of primitive `prim`: |g| / |grad g|
-    of the face's implicit function in the primitive's canonical frame (about the distance
-    from the surface there, in units of the canonical shape, near it). Tells whether a face
-    found along one ray passes through a point of another (the point of an edge)."""
-    *_, grad, _, g = _hit_in_primitive(tree, prim, info, o, d, t, active)
-    return dr.select(active, dr.abs(g) * dr.rsqrt(dr.squared_norm(grad)), dr.inf)
+def hit_normal(tree, prim, info, o, d, t, active):
+    """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`."""
+    rows, _, _, _, _, _, _, n_local, d, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
+    return _solid_normal(tree.b, rows, n_local, info, d, active)
+
+
+def face_at(tree, prim, info, o, d, t, active):
+    """(normal, residual) of face `info` of primitive `prim` at o + t d: the normal as
+    `hit_normal` gives it, and how far the point lies off the face's surface, |g| / |grad g|
+    of its implicit function in the primitive's canonical frame (about the distance from the
+    surface there, in units of the canonical shape, near it). Tells whether a face found
+    along one ray passes through a point of another (the point of an edge)."""
+    rows, _, _, _, _, _, _, grad, d, g = _hit_in_primitive(tree, prim, info, o, d, t, active)
+    residual = dr.select(active, dr.abs(g) * dr.rsqrt(dr.squared_norm(grad)), dr.inf)
+    return _solid_normal(tree.b, rows, grad, info, d, active), residual
 
 
 def attached_hit(to_world, tree, prim, info, t, o, d, active):
