@@ -59,14 +59,17 @@ def machine() -> dict:
 
 
 def best_of(fn, repeats: int = 5) -> dict:
-    """Run fn() `repeats` times; report min and median seconds (the first run is warm-up)."""
+    """Run fn() `repeats` times; report min and median seconds. A first run before them is
+    warm-up (kernels compiled, or read from Dr.Jit's cache); `first_s` is its time."""
+    t0 = time.perf_counter()
     fn()
+    first = time.perf_counter() - t0
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t0)
-    return {"min_s": min(times), "median_s": statistics.median(times), "runs": times}
+    return {"min_s": min(times), "median_s": statistics.median(times), "runs": times, "first_s": first}
 
 
 def table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:

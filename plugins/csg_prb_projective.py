@@ -324,6 +324,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             sample.p, sample.silhouette_d, sample.n = y_d, tangent, normal
             jacobian = mi.ad.ProjectiveDetail.sensor_jacobian(None, sensor, sample)
             offset = offset * dr.norm(y_d - cam)
+            # The curve points once, for all the jump's kernels; the weights once, for the
+            # image and its gradient.
+            _evaluate(sampler, y_d, dy_d, normal, offset, valid, ds.uv, jacobian, pdf)
             if radiance is None:
                 def radiance(target, active):
                     return self._radiance(scene, sampler, cam, target, wavelengths, active)
@@ -334,6 +337,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             delta *= wavelength_weight
             valid &= dr.any(delta != 0)
             weight = delta * jacobian / pdf / spp
+            _evaluate(sampler, weight, valid)
         # Moving the curve by v . n in the image replaces the outside radiance by the inside.
         return ds.uv, weight * dr.dot(y - y_d, normal), valid
 
@@ -393,9 +397,10 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             si.p = x + offset * away
             passing = mi.Ray3f(camera, dr.normalize(x + sign * offset * normal - camera))
             passing.wavelengths = wavelengths
+            _evaluate(sampler, passing, exact, si, bsdf, at_face)
             L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, passing, None, None, exact,
                                      first=(si, bsdf, at_face))
-            leaving.append(dr.select(exact, L, 0))
+            leaving.append(_evaluate(sampler, dr.select(exact, L, 0)))
 
         def radiance(target, lanes):
             return self._radiance(scene, sampler, camera, target, wavelengths, lanes)
@@ -621,10 +626,13 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             valid &= (speed > 0) & (sine > 0) & dr.isfinite(pdf) & (pdf > 0) & (distance > 0)
             reflected = vertex.bsdf.eval(mi.BSDFContext(), si, si.to_local(w), valid)    # f cos
             valid &= dr.any(reflected != 0)
+            dr.eval(x_d, dx_d, normal, distance, valid, reflected, sine, pdf, vertex.pos, vertex.path_weight, si,
+                    vertex.bsdf, vertex.p_a, *([] if vertex.depth is None else [vertex.depth]))   # as in `_difference`
             delta = jump(x_d, normal, distance, valid) * wavelength_weight
             valid &= dr.any(delta != 0)
             weight = vertex.path_weight * reflected * delta * sine / (dr.square(distance) * pdf * spp)
             weight = dr.select(valid, weight, 0)
+            dr.eval(weight, valid)
         motion = (x - x_d) - (vertex.p_a - p)
         return vertex.pos, weight * dr.dot(motion, normal), valid
 
@@ -637,15 +645,17 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         # pass the curve that far to one side, which offsets close to it cannot afford.
         ray.d = dr.normalize(target - ray.o)
         depth = self.max_depth if self.max_depth == 0xFFFFFFFF else self.max_depth - 1
+        _evaluate(sampler, ray, active, lane_depth)
         L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, active, max_depth=depth,
                                  hide_first_emitter=True, lane_depth=lane_depth)
-        return dr.select(active, L, 0)
+        return _evaluate(sampler, dr.select(active, L, 0))
 
     def _radiance(self, scene, sampler, origin, target, wavelengths, active):
         ray = mi.Ray3f(origin, dr.normalize(target - origin))
         ray.wavelengths = wavelengths
+        _evaluate(sampler, ray, active)
         L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, active)
-        return dr.select(active, L, 0)
+        return _evaluate(sampler, dr.select(active, L, 0))
 
     def to_string(self):
         return (f"CSGPRBProjectiveIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
@@ -834,6 +844,17 @@ def _jump(radiance, x, normal, offset, active):
     return jump
 
 
+def _evaluate(sampler, *values):
+    """Evaluates `values` and `sampler`'s state now (returns the last value): a boundary
+    between kernels. The path tracer a jump calls for its rays then compiles to a kernel of
+    its own, the same for every call (the rays read from memory, their offsets no constants
+    in it), so LLVM compiles it once, rather than once per call in one kernel that holds
+    them all (a primary term's took 16 s to compile, twice: again for the gradient)."""
+    sampler.schedule_state()
+    dr.eval(*values)
+    return values[-1]
+
+
 def _point(where):
     return mi.Point3f(*[float(c) for c in where])
 
@@ -871,13 +892,16 @@ def _direct_light(scene, csg, camera, target, source, wavelengths, active):
     lit directly by the source's lamp (zero where the lamp is hidden or the BSDF is a delta)."""
     ray = mi.Ray3f(camera, dr.normalize(target - camera))
     ray.wavelengths = wavelengths
+    dr.eval(ray, active)
     si, bsdf, _, _, _ = csg.intersect(scene, ray, active)
     active = active & si.is_valid()
     shadow_ray, weight = source.incident(si, active)
     active &= dr.any(weight != 0)
     active &= ~csg.occluded(scene, shadow_ray, active)
     value = bsdf.eval(mi.BSDFContext(), si, si.to_local(shadow_ray.d), active) * weight
-    return dr.select(active, value, 0)
+    value = dr.select(active, value, 0)
+    dr.eval(value)
+    return value
 
 
 def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, leaf, solid, active, mesh_edge=False):
