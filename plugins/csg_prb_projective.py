@@ -304,7 +304,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         term (the curve's motion normal to itself, Mitsuba's own sensor Jacobian). `radiance(target,
         active)`: what the camera sees through `target` (default: the integrator's estimate of
         all of it; a shadow's edge needs only the light that casts it). `jump(y, normal, offset,
-        active)`: the jump across the curve, where not `_jump` of that radiance."""
+        active, radiance)`: the jump across the curve, where not `_jump` of that radiance."""
         cam = _point(camera)
         with dr.suspend_grad():
             y_d, dy_d = dr.detach(y), dr.detach(dy)
@@ -333,7 +333,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             if jump is None:
                 delta = _jump(radiance, y_d, normal, offset, valid)
             else:
-                delta = jump(y_d, normal, offset, valid)
+                delta = jump(y_d, normal, offset, valid, radiance)
             delta *= wavelength_weight
             valid &= dr.any(delta != 0)
             weight = delta * jacobian / pdf / spp
@@ -349,12 +349,12 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         x, dx, valid, _, pmf, _, _ = sampled
         cam = _point(camera)
 
-        def jump(y, normal, offset, active):
-            return self._seen_jump(scene, csg, sampler, cam, y, normal, offset, wavelengths, active)
+        def jump(y, normal, offset, active, radiance):
+            return self._seen_jump(scene, csg, sampler, cam, y, normal, offset, wavelengths, active, radiance)
         return self._difference(scene, sampler, camera, sensor, x, dx, pmf, valid, wavelengths, wavelength_weight,
                                 spp, jump=jump)
 
-    def _seen_jump(self, scene, csg, sampler, camera, x, normal, offset, wavelengths, active):
+    def _seen_jump(self, scene, csg, sampler, camera, x, normal, offset, wavelengths, active, radiance):
         """The jump of the radiance the camera sees across the curve point x (the side
         towards -normal minus the side towards +normal). Camera rays passing x at `offset`
         either side name the faces there.
@@ -375,7 +375,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         nearly edge-on, rays at an offset meet it far from x, or miss it for the face
         behind (where a hole's rim meets the contour of its sphere), and no extrapolation in
         the offset mends that. Contours (the face at x seen edge-on) keep `_jump` of rays
-        either side, extrapolated to the curve."""
+        either side, extrapolated to the curve: `radiance(target, active)`, what the camera sees
+        through `target` (`_difference`'s)."""
         at_x, distance, sides, near, on_boundary, normals = _faces_beside(csg, camera, x, normal, offset, active)
         at_x.wavelengths = wavelengths
         crease = on_boundary & near[0] & near[1]
@@ -397,13 +398,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             si.p = x + offset * away
             passing = mi.Ray3f(camera, dr.normalize(x + sign * offset * normal - camera))
             passing.wavelengths = wavelengths
-            _evaluate(sampler, passing, exact, si, bsdf, at_face)
-            L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, passing, None, None, exact,
-                                     first=(si, bsdf, at_face))
-            leaving.append(_evaluate(sampler, dr.select(exact, L, 0)))
+            leaving.append(self._path_radiance(scene, sampler, passing, exact, first=(si, bsdf, at_face)))
 
-        def radiance(target, lanes):
-            return self._radiance(scene, sampler, camera, target, wavelengths, lanes)
         beside = _jump(radiance, x, normal, offset, on_boundary & ~exact)
         return dr.select(exact, leaving[0] - leaving[1], beside)
 
@@ -645,16 +641,20 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         # pass the curve that far to one side, which offsets close to it cannot afford.
         ray.d = dr.normalize(target - ray.o)
         depth = self.max_depth if self.max_depth == 0xFFFFFFFF else self.max_depth - 1
-        _evaluate(sampler, ray, active, lane_depth)
-        L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, active, max_depth=depth,
-                                 hide_first_emitter=True, lane_depth=lane_depth)
-        return _evaluate(sampler, dr.select(active, L, 0))
+        return self._path_radiance(scene, sampler, ray, active, max_depth=depth, hide_first_emitter=True,
+                                   lane_depth=lane_depth)
 
     def _radiance(self, scene, sampler, origin, target, wavelengths, active):
         ray = mi.Ray3f(origin, dr.normalize(target - origin))
         ray.wavelengths = wavelengths
-        _evaluate(sampler, ray, active)
-        L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, active)
+        return self._path_radiance(scene, sampler, ray, active)
+
+    def _path_radiance(self, scene, sampler, ray, active, **options):
+        """The integrator's primal estimate along `ray` (zero off `active`), in a kernel of its
+        own (`_evaluate`); `options` as `sample` takes them."""
+        lanes = [options[k] for k in ("lane_depth", "first") if options.get(k) is not None]   # per-lane inputs
+        _evaluate(sampler, ray, active, *lanes)
+        L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, active, **options)
         return _evaluate(sampler, dr.select(active, L, 0))
 
     def to_string(self):
