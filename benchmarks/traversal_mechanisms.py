@@ -14,9 +14,9 @@ import argparse
 
 import common
 
-# `compounds` are members of sets: without sets (alone) they change nothing.
+# `compounds` and `neighbour_passes` work inside sets: without sets (alone) they change nothing.
 MECHANISMS = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through",
-              "compounds")
+              "compounds", "neighbour_passes")
 
 
 def configurations():

@@ -38,6 +38,7 @@ TRAVERSALS = {
     "no_sets": TraversalOptions(sets=False),
     "small_sets": TraversalOptions(min_set_size=2),      # unions of 2 and 3 leaves walked as sets too
     "no_compounds": TraversalOptions(compounds=False),   # set members are leaves only
+    "no_neighbours": TraversalOptions(neighbour_passes=False),   # passes from inside start at the set's root
     "no_pass_through": TraversalOptions(pass_through=False),
     "none": TraversalOptions(*[False] * 6),
 }
@@ -122,7 +123,7 @@ def test_random_trees_agree_with_reference(model, seed, form, traversal):
     compare(model, hits, o, d)
 
 
-@pytest.mark.parametrize("traversal", ["default", "no_sets"])
+@pytest.mark.parametrize("traversal", ["default", "no_sets", "no_neighbours"])
 @pytest.mark.parametrize("form", FORMS)
 @given(model=unions_of_leaves(), seed=st.integers(0, 2**31))
 def test_unions_of_many_leaves_agree_with_reference(model, seed, form, traversal):
@@ -323,6 +324,39 @@ def test_start_prim_changes_no_result(model, seed):
     compare(model, got, origin, direction, check_prim=not np.any(other))
 
 
+def test_a_compound_literal_under_a_union_gives_no_start_hint():
+    """A compound cut by a union, C - (S1 | S2), has its literals S1, S2 under a union inside
+    the set: a ray starting on S1 must not be walked as if it started inside a set member
+    (found by test_neighbour_passes_change_no_result: a hit where the reference has none)."""
+    from mitsuba_csg.queries import trace_rays
+    shift = np.eye(4)
+    shift[0, 3] = -0.214713
+    shift[:3, :3] *= 0.991207
+    model = csg.union(csg.Sphere(0.781508), csg.Sphere(0.3) - csg.Sphere(0.95), csg.Sphere(0.667453),
+                      csg.Cylinder(0.767058, 1.9).transform(shift) - (csg.Sphere(0.967631) | csg.Sphere(0.3)))
+    o = np.array([[-0.09745904000258288, -0.6017817626049867, 0.7513168434815128]])
+    d = np.array([[2.2035098806466507, -0.05202897425988651, -0.6836861907765345]])
+    assert np.isinf(ref.first_hit(model, o, d)[0][0])
+    prepared = csg.prepare(model, optimize=False)
+    b = prepared.tree.b
+    for prim in range(len(model.leaves())):
+        hits = trace_rays(prepared, csg.rays_to_device(o, b), csg.rays_to_device(d, b), start_prim=b.UInt32([prim]))
+        assert np.isinf(hits.t.numpy()[0]), prim
+
+
+def rays_leaving_holes(model, seed, n, spread):
+    """(origins, directions, start primitives) of rays from the walls of a Cheese's holes into
+    them: the hits of `n` random rays on holes, each leaving about its normal."""
+    o, d = make_rays(seed, n)
+    first = csg.trace(model, o, d)
+    on_hole = np.flatnonzero(np.isfinite(first.t) & (first.prim > 0))      # leaf 0 is the cube
+    normal = first.normal[on_hole]
+    origin = o[on_hole] + first.t[on_hole, None] * d[on_hole] + 1e-4 * normal
+    direction = normal + spread * np.random.default_rng(seed).normal(size=normal.shape)
+    direction *= np.sign(np.einsum("ij,ij->i", direction, normal))[:, None]
+    return origin, direction, first.prim[on_hole].astype(np.uint32)
+
+
 def test_start_prim_saves_steps_on_rays_leaving_a_hole():
     """The case the hint is for: rays from the inside of a Cheese's hole's wall into the hole
     take fewer steps (the same hits: test_start_prim_changes_no_result)."""
@@ -330,18 +364,73 @@ def test_start_prim_saves_steps_on_rays_leaving_a_hole():
     model = cheese(40)
     prepared = csg.prepare(model)
     b = prepared.tree.b
-    o, d = make_rays(4, 2000)
-    first = csg.trace(model, o, d)
-    on_hole = np.flatnonzero(np.isfinite(first.t) & (first.prim > 0))      # leaf 0 is the cube
-    n = first.normal[on_hole]
-    origin = o[on_hole] + first.t[on_hole, None] * d[on_hole] + 1e-4 * n
-    direction = n + 0.5 * np.random.default_rng(0).normal(size=n.shape)
-    direction *= np.sign(np.einsum("ij,ij->i", direction, n))[:, None]
+    origin, direction, start = rays_leaving_holes(model, 4, 2000, 0.5)
     O, D = csg.rays_to_device(origin, b), csg.rays_to_device(direction, b)
     plain = trace_rays(prepared, O, D)
-    hinted = trace_rays(prepared, O, D, start_prim=b.UInt32(first.prim[on_hole].astype(np.uint32)))
+    hinted = trace_rays(prepared, O, D, start_prim=b.UInt32(start))
     assert np.array_equal(plain.t.numpy(), hinted.t.numpy(), equal_nan=True)
     assert hinted.steps.numpy().mean() < 0.9 * plain.steps.numpy().mean()
+
+
+@given(model=st.one_of(unions_of_leaves(), unions_of_compounds()), seed=st.integers(0, 2**31),
+       optimize=st.booleans())
+def test_neighbour_passes_change_no_result(model, seed, optimize):
+    """A set walk inside at a member's exit that searches only that member's neighbours
+    (engine.neighbours: a ray leaving a member's surface into it, a chain through overlapping
+    members) finds what the walk from the set's root finds, for rays from anywhere and for
+    rays continuing from hits with the hit's primitive as `start_prim`; and agrees with the
+    float64 reference."""
+    from types import SimpleNamespace
+
+    from mitsuba_csg.queries import trace_rays
+    targets = [leaf.matrix[:3, 3] for leaf in model.leaves()]
+    o, d = make_rays(seed, 128, targets=targets)
+    first = csg.trace(model, o, d)
+    hit = np.flatnonzero(np.isfinite(first.t))
+    rng = np.random.default_rng(seed)
+    side = rng.choice([-1.0, 1.0], len(hit))
+    n = first.normal[hit]
+    origin = np.concatenate([o, o[hit] + first.t[hit, None] * d[hit] + side[:, None] * 1e-4 * n])
+    turned = rng.normal(size=n.shape)
+    turned *= np.sign(np.einsum("ij,ij->i", turned, n) * side)[:, None]
+    direction = np.concatenate([d, turned])
+    start = np.concatenate([np.full(len(o), 0xFFFFFFFF), first.prim[hit]]).astype(np.uint32)
+    results = []
+    for neighbours in (True, False):
+        prepared = csg.prepare(model, optimize=optimize, traversal=TraversalOptions(neighbour_passes=neighbours))
+        b = prepared.tree.b
+        results.append(trace_rays(prepared, csg.rays_to_device(origin, b), csg.rays_to_device(direction, b),
+                                  start_prim=b.UInt32(start)))
+    local, rooted = results
+    for name in ("t", "entering", "finished", "info"):
+        assert np.array_equal(np.asarray(getattr(local, name).numpy()), np.asarray(getattr(rooted, name).numpy()),
+                              equal_nan=True), name
+    got = SimpleNamespace(t=local.t.numpy(), prim=local.prim.numpy().astype(np.int64),
+                          normal=np.asarray(local.normal.numpy()).T, entering=local.entering.numpy(),
+                          unfinished=int(np.sum(~local.finished.numpy())))
+    got.prim[~np.isfinite(got.t)] = -1
+    compare(model, got, origin, direction, check_prim=bool(np.all(local.prim.numpy() == rooted.prim.numpy())),
+            coincident=True)
+
+
+def test_neighbour_passes_save_steps_in_connected_holes():
+    """The case neighbour trees are for: rays from a hole's wall into a Cheese whose holes
+    overlap (each pass at a hole's exit looks among that hole's neighbours, not down the
+    whole set) take fewer steps, to the same hits."""
+    from mitsuba_csg.queries import trace_rays
+    model = cheese(300, seed=2)
+    origin, direction, start = rays_leaving_holes(model, 5, 3000, 0.7)
+    steps, t = [], []
+    for neighbours in (True, False):
+        prepared = csg.prepare(model, traversal=TraversalOptions(neighbour_passes=neighbours))
+        assert prepared.tree.has_neighbours == neighbours
+        b = prepared.tree.b
+        hits = trace_rays(prepared, csg.rays_to_device(origin, b), csg.rays_to_device(direction, b),
+                          start_prim=b.UInt32(start))
+        steps.append(hits.steps.numpy().mean())
+        t.append(hits.t.numpy())
+    assert np.array_equal(t[0], t[1], equal_nan=True)
+    assert steps[0] < 0.85 * steps[1]
 
 
 def test_reorder_inside_a_symbolic_loop_is_ignored():

@@ -54,6 +54,8 @@ KIND_NAMES = {UNION: "union", INTERSECTION: "intersection", DIFFERENCE: "differe
 SPHERE, BOX, CONE, TORUS, CONVEX, MESH, QUADRIC = 0, 1, 2, 3, 4, 5, 6
 SHAPE_CODES = {"sphere": SPHERE, "box": BOX, "cone": CONE, "torus": TORUS, "convex": CONVEX, "mesh": MESH,
                "quadric": QUADRIC}
+# Shapes whose inside along a ray may be several intervals.
+NON_CONVEX_SHAPES = (TORUS, MESH, QUADRIC)
 SHAPE_NAMES = {code: name for name, code in SHAPE_CODES.items()}
 
 # ---- Event classes ----

@@ -32,11 +32,10 @@ import drjit as dr
 from . import layout as K
 from . import shapes
 from .device import Untraversed, gather_prim, node_record, set_node
-from .layout import ENTER, EXIT, FLIP_BIT, MAX_SLOPE, MESH, MISS, NO_LEAF, QUADRIC, TORUS
+from .layout import ENTER, EXIT, FLIP_BIT, MAX_SLOPE, MISS, NO_LEAF
+from .neighbours import NEIGHBOUR_REACH, NO_ENTRY
 
 _NO_NODE = 0xFFFFFFFF
-# Shapes whose inside along a ray may be several intervals.
-_NON_CONVEX = (TORUS, MESH, QUADRIC)
 
 
 def complement_class(cls):
@@ -67,7 +66,7 @@ def leaf_hit(b, tree, flags, prim, o, d, t_start, tie):
     # A complemented leaf swaps enter/exit; missing it means being inside it forever.
     cls = dr.select(complemented, complement_class(cls), cls)
     non_convex = dr.zeros(b.Bool, dr.width(t))
-    for code in _NON_CONVEX:
+    for code in K.NON_CONVEX_SHAPES:
         if code in tree.shape_kinds:
             non_convex |= shape == code
     return t, K.hit_info(cls, dr.select(complemented, FLIP_BIT, 0), face, slope), non_convex
@@ -179,6 +178,14 @@ def compound_hit(b, tree, node, o, d, t_start, tie, active):
     return res_t, res_info, non_convex, res_leaf, evaluated
 
 
+def _neighbour_pass(b, tree, member, starting, near_enough, node, local):
+    """(node, local): a pass starting inside at `member`'s exit begins at its neighbour tree,
+    where it has one and the lane's tie window is within the tree's reach."""
+    entry = dr.gather(b.UInt32, tree.neighbour_entry, member, starting)
+    go = starting & near_enough & (entry != NO_ENTRY)
+    return dr.select(go, entry, node), local | go
+
+
 @dr.syntax
 def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tmax, tie, active,
                start_member=None):
@@ -224,6 +231,11 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
     widest = tie_window(b, tie, MAX_SLOPE)
     done = ~b.Bool(active)
     iterations = dr.zeros(b.UInt32, width)
+    # A pass inside at a member's exit may search that member's neighbours only (`local`,
+    # engine.neighbours), where the ray's widest tie window is within what their trees cover.
+    neighbours = tree.has_neighbours and tree.options.neighbour_passes
+    local = dr.zeros(b.Bool, width)
+    near_enough = widest <= NEIGHBOUR_REACH
     if dr.hint(start_member is not None, mode="scalar"):
         hinted = b.Bool(active) & (start_member != NO_LEAF)
         if hinted:
@@ -242,11 +254,13 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
                 dr.select(held, info_h, out_info)
             t_c, from_t = dr.select(held, t_h, t_c), dr.select(held, t_h, from_t)
             iterations += dr.select(hinted, 1, 0)
+            if dr.hint(neighbours, mode="scalar"):
+                node, local = _neighbour_pass(b, tree, start_member, held, near_enough, node, local)
 
     # Loop state is what the walk changes: the rays and bounds it only reads are left out
     # (Dr.Jit would otherwise record the body twice, once to find them unchanged).
     while dr.hint(~done & (sp < walk_stack_size), label="csg_set_walk",
-                  exclude=[o, d, inv_d, tie, entry_bound, exit_bound, tmax, widest, start_node, root]):
+                  exclude=[o, d, inv_d, tie, entry_bound, exit_bound, tmax, widest, start_node, root, near_enough]):
         iterations += 1
         has_node = node != _NO_NODE
         wide = has_node & ((node & K.SET_NODE_TAG) != 0)
@@ -323,12 +337,14 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
 
         # ---- End of a pass ----
         ended = ~done & (node == _NO_NODE) & (sp == 0)
-        if dr.hint(ended, exclude=[tie, widest, entry_bound, exit_bound, tmax, root, start_node]):
+        if dr.hint(ended, exclude=[tie, widest, entry_bound, exit_bound, tmax, root, start_node, near_enough]):
             found_inside = containing > 0
             window = tie_window(b, tie, dr.minimum(K.info_slope(ex_info), K.info_slope(en_info)))
             # Another member may take over at the farthest exit: one entered before it (or may
             # have been, in a box not opened), or a second containing one that may re-enter.
             take_over = (en_t <= ex_t + window) | ((containing > 1) & non_convex_inside) | (culled <= ex_t + widest)
+            if dr.hint(neighbours, mode="scalar"):
+                take_over |= local        # a pass over neighbours saw only those of the member it started from
             # Past the exit bound the state is all that matters: inside up to the bound.
             unsure = found_inside & take_over & (ex_t >= exit_bound) & (exit_bound < tmax)
             chain = found_inside & ~unsure & dr.isfinite(ex_t) & take_over
@@ -355,6 +371,9 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
             t_c = dr.select(restart, ex_t, t_c)
             from_t = dr.select(restart, ex_t, from_t)
             node = dr.select(restart, start_node, node)
+            if dr.hint(neighbours, mode="scalar"):
+                local &= ~restart
+                node, local = _neighbour_pass(b, tree, ex_leaf, restart, near_enough, node, local)
             en_t, en_leaf, en_info = dr.select(restart, dr.inf, en_t), dr.select(restart, NO_LEAF, en_leaf), \
                 dr.select(restart, MISS, en_info)
             ex_t, ex_leaf, ex_info = dr.select(restart, -dr.inf, ex_t), dr.select(restart, NO_LEAF, ex_leaf), \
