@@ -91,10 +91,13 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active_em)
             active_em &= ds.pdf != 0.0
-            occluded = csg.occluded(scene, si.spawn_ray_to(ds.p), active_em, start_prim=start)
-            active_em &= ~occluded
             wo = si.to_local(ds.d)
             bsdf_value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
+            # Where the BSDF gives nothing (light from below the surface), occlusion does not
+            # matter: no shadow ray.
+            active_em &= dr.any(bsdf_value != 0.0)
+            occluded = csg.occluded(scene, si.spawn_ray_to(ds.p), active_em, start_prim=start)
+            active_em &= ~occluded
             mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
             L += dr.select(active_em, beta * mis_em * bsdf_value * em_weight, 0.0)
 
