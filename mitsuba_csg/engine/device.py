@@ -199,9 +199,10 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         # Only where rays cross a set's inside outside the solid (holes: a subtracted or
         # complemented set) do its passes from inside matter; elsewhere the trees would cost
         # memory (a Satellites' parts: 23 MB more for 87,500 primitives) and save little.
-        member = _set_members(sets & _subtracted(kind, neg, left, right, root), compound, kind, left, right)
+        holes = sets & _subtracted(kind, neg, left, right, root)
+        member = _set_members(holes, compound, kind, left, right)
         balls = _sphere_balls(flat, kind, left, centre, inv_scale)
-        trees, neighbour_entry = neighbour_trees(sets, member, kind, left, right, box, balls, convex, len(set_nodes))
+        trees, neighbour_entry = neighbour_trees(holes, member, kind, left, right, box, balls, convex, len(set_nodes))
         if np.any(neighbour_entry != NO_ENTRY):
             set_nodes = np.concatenate([set_nodes, trees])
     compound_literals = _compound_literals(compound, kind, left, right, walk_entry)
