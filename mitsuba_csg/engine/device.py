@@ -137,7 +137,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     compound = _compound_roots(kind, neg, group, left, right, parent, flat) if options.compounds and options.sets \
         else np.zeros(len(kind), bool)
     sets = _set_roots(kind, neg, group, left, right, parent, flat.node_height, options.min_set_size, compound)
-    compound &= _set_members(sets, compound, kind, left, right)
+    compound &= _set_owners(sets, compound, kind, left, right) >= 0
     wrap = bool(kind[flat.root] == K.LEAF) or bool(sets[flat.root])
     if wrap:
         # The automaton starts at an operation and searches leaves and sets as its children:
@@ -192,6 +192,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         node_wide[ops, offset:offset + 3] = box[child[ops], 0:3]
         node_wide[ops, offset + 3:offset + 6] = box[child[ops], 4:7]
     set_nodes, walk_entry, pending = _wide_sets(sets, kind, left, right, lower, upper, box, compound)
+    owner = _set_owners(sets, compound, kind, left, right)
     neighbour_entry = np.full(len(kind), NO_ENTRY, np.uint32)
     if options.sets and options.neighbour_passes:
         leaf = kind == K.LEAF
@@ -200,14 +201,13 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         # complemented set) do its passes from inside matter; elsewhere the trees would cost
         # memory (a Satellites' parts: 23 MB more for 87,500 primitives) and save little.
         holes = sets & _subtracted(kind, neg, left, right, root)
-        member = _set_members(holes, compound, kind, left, right)
+        in_hole = np.where(holes[np.maximum(owner, 0)], owner, -1)
         balls = _sphere_balls(flat, kind, left, centre, inv_scale)
-        trees, neighbour_entry = neighbour_trees(holes, member, kind, left, right, box, balls, convex, len(set_nodes))
+        trees, neighbour_entry = neighbour_trees(in_hole, box, balls, convex, len(set_nodes))
         if np.any(neighbour_entry != NO_ENTRY):
             set_nodes = np.concatenate([set_nodes, trees])
     compound_literals = _compound_literals(compound, kind, left, right, walk_entry)
-    prim_start = _prim_start(flat.num_prims, len(flat.node_kind), sets, _set_members(sets, compound, kind, left, right),
-                             kind, left, parent)
+    prim_start = _prim_start(flat.num_prims, len(flat.node_kind), owner, kind, left)
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
     # world -> canonical after scene -> world (x = centre + x' / inv_scale)
     rows = flat.prim_to_canonical.copy()
@@ -443,43 +443,32 @@ def _set_roots(kind, neg, group, left, right, parent, height, min_size=2, compou
     return pure & ~member & ~parent_pure & (members >= min_size)
 
 
-def _prim_start(num_prims, n_real, sets, members, kind, left, parent) -> np.ndarray:
+def _prim_start(num_prims, n_real, owner, kind, left) -> np.ndarray:
     """(leaf node, set root or NO_LEAF) per primitive: the set a ray starting on the
-    primitive's surface may start inside a member of (`members`: the sets' members, per
-    node). Nodes from `n_real` on are the virtual root's (no primitive of their own)."""
+    primitive's surface may start inside a member of (`owner`: per node, the set it is a
+    member of, as `_set_owners` gives it). A compound's literals are no members (a cut by a
+    union, A - (B | C), has literals under a union too): their set cannot take a hint from
+    them. Nodes from `n_real` on are the virtual root's (no primitive of their own)."""
     out = np.full((max(num_prims, 1), 2), K.NO_LEAF, np.uint32)
     leaves = np.flatnonzero(kind[:n_real] == K.LEAF)
     out[left[leaves], 0] = leaves
-    # Sets do not nest, so a leaf's set is the one set root among its ancestors: climb all
-    # leaves one level per step.
-    owner = np.full(len(leaves), -1, np.int64)
-    above = parent[leaves].astype(np.int64)
-    climbing = above >= 0
-    while np.any(climbing):
-        at = above[climbing]
-        found = sets[at]
-        idx = np.flatnonzero(climbing)
-        owner[idx[found]] = at[found]
-        climbing[idx[found]] = False
-        above[idx] = np.where(found, -1, parent[at])
-        climbing &= above >= 0
-    # A compound's literals are not members (a cut by a union, A - (B | C), has literals under
-    # a union too): their set cannot take a hint from them.
-    member = (owner >= 0) & members[leaves]
-    out[left[leaves[member]], 1] = owner[member]
+    member = leaves[owner[leaves] >= 0]
+    out[left[member], 1] = owner[member]
     return out
 
 
-def _set_members(sets, compound, kind, left, right) -> np.ndarray:
-    """Per node, whether it is a member (a leaf or a compound) of one of the sets."""
-    member = np.zeros(len(kind), bool)
+def _set_owners(sets, compound, kind, left, right) -> np.ndarray:
+    """Per node, the set root it is a member (a leaf or a compound) of; -1 for the others."""
+    owner = np.full(len(kind), -1, np.int64)
     frontier = np.flatnonzero(sets)
+    roots = frontier
     while frontier.size:
         children = np.concatenate([left[frontier], right[frontier]])
+        roots = np.concatenate([roots, roots])
         ends = (kind[children] == K.LEAF) | compound[children]
-        member[children[ends]] = True
-        frontier = children[~ends]
-    return member
+        owner[children[ends]] = roots[ends]
+        frontier, roots = children[~ends], roots[~ends]
+    return owner
 
 
 def _wide_sets(sets, kind, left, right, lower, upper, box, compound) -> tuple[np.ndarray, np.ndarray, int]:

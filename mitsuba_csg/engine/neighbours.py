@@ -38,51 +38,39 @@ MAX_NEIGHBOURS = 64
 NO_ENTRY = 0xFFFFFFFF     # no neighbour tree: walk from the set's root
 
 
-def neighbour_trees(sets, member, kind, left, right, box, balls, convex, first_record):
+def neighbour_trees(owner, box, balls, convex, first_record):
     """(records, entry): 4-wide set-node records (layout.SET_NODE_FLOATS each, numbered from
     `first_record`) holding each set member's neighbour tree, and per node where a pass from
     inside at that member's exit starts: SET_NODE_TAG | a record, a lone neighbour's node
     id, or NO_ENTRY.
 
-    `member` marks the sets' members (leaves and compounds), `box` holds the nodes' padded
+    `owner` gives per node the set it is a member of (a leaf or a compound; -1 for none),
+    `box` holds the nodes' padded
     boxes (lower xyz, 0, upper xyz, 0; NaN if empty), `balls` per node a ball (centre,
     radius) that holds a sphere leaf (NaN radius for other nodes), `convex` the members whose
     inside along a ray is one interval: a convex member is not its own neighbour, since a
     ray that leaves it does not enter it again."""
-    entry = np.full(len(kind), NO_ENTRY, np.uint32)
+    entry = np.full(len(owner), NO_ENTRY, np.uint32)
     lower, upper = box[:, 0:3], box[:, 4:7]
-    pairs = [_neighbour_pairs(members, lower, upper, balls) for members in
-             _members_by_set(sets, member, kind, left, right)]
-    owner = np.concatenate([p[0] for p in pairs]) if pairs else np.zeros(0, np.int64)
+    pairs = [_neighbour_pairs(members, lower, upper, balls) for members in _members_by_set(owner)]
+    of = np.concatenate([p[0] for p in pairs]) if pairs else np.zeros(0, np.int64)    # each pair's member
     near = np.concatenate([p[1] for p in pairs]) if pairs else np.zeros(0, np.int64)
-    keep = ~((owner == near) & convex[owner])
-    owner, near = owner[keep], near[keep]
+    keep = ~((of == near) & convex[of])
+    of, near = of[keep], near[keep]
     # Record 0 has no children: the entry of a member with no neighbours (a pass that opens nothing).
     empty = np.full((1, K.SET_NODE_FLOATS), np.nan, np.float32)
     empty[0, :4] = np.full(4, K.NO_LEAF, np.uint32).view(np.float32)
-    with_list = np.unique(owner)
-    alone = np.setdiff1d(np.flatnonzero(member), np.concatenate([with_list, _crowded(pairs)]))
+    with_list = np.unique(of)
+    alone = np.setdiff1d(np.flatnonzero(owner >= 0), np.concatenate([with_list, _crowded(pairs)]))
     entry[alone] = K.SET_NODE_TAG | first_record
-    records, roots = _trees(owner, near, lower, upper, first_record + 1)
+    records, roots = _trees(of, near, lower, upper, first_record + 1)
     entry[with_list] = roots
     return np.concatenate([empty, records]), entry
 
 
-def _members_by_set(sets, member, kind, left, right):
+def _members_by_set(owner):
     """Each set's member node ids (sets of fewer than two members are skipped)."""
-    owner = np.full(len(kind), -1, np.int64)
-    frontier = np.flatnonzero(sets)
-    owner[frontier] = frontier
-    found = []
-    while frontier.size:
-        children = np.concatenate([left[frontier], right[frontier]])
-        owner[children] = np.concatenate([owner[frontier], owner[frontier]])
-        ends = member[children]
-        found.append(children[ends])
-        frontier = children[~ends & (kind[children] != K.LEAF)]
-    if not found:
-        return
-    ids = np.concatenate(found)
+    ids = np.flatnonzero(owner >= 0)
     ids = ids[np.argsort(owner[ids], kind="stable")]
     for group in np.split(ids, np.flatnonzero(np.diff(owner[ids])) + 1):
         if len(group) > 1:
