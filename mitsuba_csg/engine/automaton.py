@@ -6,9 +6,11 @@ buffers it reads are built by `engine.device`, the primitives are intersected by
 
 One symbolic Dr.Jit loop per ray batch walks the binary tree with two per-lane stacks of
 the tree's height: a hit stack (t, leaf node, hit info) and a state stack (what to do when
-a subtree's hit comes back). Each iteration does at most one GoTo step (one box test and at
-most one primitive intersection, or a descent), one Classify step (a state-table lookup)
-and one Return step (pop and hand the hit to the parent), so lanes stay in step.
+a subtree's hit comes back). Each iteration does the GoTo steps of a descent (an inner
+loop: one per operation node passed on the way down, each counted as a step), then at most
+one search (a box test and one primitive intersection, or a set walk), one Classify step
+(a state-table lookup) and one Return step (pop and hand the hit to the parent), so lanes
+stay in step.
 
 Registers: `node` (the operation whose children are in play), `t_start` (events must lie
 strictly after it), `t_bound` (events of `node` past it do not matter), the left and right
@@ -85,10 +87,178 @@ def _tie_tolerance(b, tree, o, d):
     return TIE_TOLERANCE * magnitude / dr.norm(d)
 
 
+def _goto(b, tree, o, d, inv_d, tie, tmax, n, node, state, t_start, t_bound, swapped, t_l, info_l):
+    """GoTo's choice at `node` in `state`: which child is searched next, on which interval,
+    and whether it is descended into or its hit is known in this step."""
+    # The node's record serves GoTo (children) and Classify (kind).
+    flags, node_left, node_right, box_l, box_r = node_with_child_boxes(b, tree, node)
+    kind = K.flags_kind(flags)
+    going = state < CLASSIFY
+    go_right = (state & 1) == 1
+    # The second child of a fresh search: while the first child's state fixes the node's
+    # (union: inside; intersection, difference: outside), the second child's events before
+    # the first child's event cannot matter (skip_to_sibling: search it from there);
+    # otherwise its events after the first child's event cannot change what the node
+    # returns next (bounded_search: search it only up to there).
+    second = state == GOTO_R_FRESH
+    cls_first = K.info_class(info_l)
+    fixes = dr.select(kind == UNION, cls_first == EXIT, cls_first != EXIT)
+    group = None
+    if tree.has_groups:
+        # A group's children are separate solids: none fixes what the other shows.
+        group = K.flags_group(flags)
+        fixes &= ~group
+    if tree.options.skip_to_sibling:
+        t_start = dr.select(second & fixes, dr.maximum(t_start, t_l), t_start)
+    child_bound = t_bound
+    if tree.options.bounded_search:
+        # Up to the first child's event and its tie window, so that a coincident event of
+        # the second child is seen as the tie it is.
+        reach = t_l + _tie_window(b, tie, K.info_slope(info_l))
+        child_bound = dr.select(second & ~fixes, dr.minimum(t_bound, reach), t_bound)
+    entry_bound = exit_bound = child_bound
+    if tree.options.skip_to_sibling and tree.options.bounded_search:
+        # Searched from the first child's event because that child fixed the node until
+        # then, the second child decides what the node does there by its state alone; its
+        # next event matters only where that state keeps the node's state (union and
+        # difference: the second child inside, so its exit; intersection: outside, so its
+        # entry). The other kind of event is searched only for ties (engine.leaf_events).
+        near_tie = t_l + _tie_window(b, tie, MAX_SLOPE)
+        state_only = second & fixes
+        wants_entry = kind == INTERSECTION
+        entry_bound = dr.select(state_only & ~wants_entry, dr.minimum(child_bound, near_tie), child_bound)
+        exit_bound = dr.select(state_only & wants_entry, dr.minimum(child_bound, near_tie), child_bound)
+    fresh_left = state == GOTO_L_FRESH
+    if tree.options.near_first:
+        # A fresh search of a union or intersection takes first the child that lies first
+        # along the ray on the node's ORDER axis (as a BVH's ordered traversal does), so
+        # that its event bounds the other. Registers L and R then hold the right and the
+        # left child (`swapped`); the state tables of both operations are symmetric.
+        axis = K.flags_order(flags)
+        d_axis = dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))
+        right_first = (axis != K.NO_ORDER) & ((d_axis < 0) ^ K.flags_left_high(flags))
+    else:
+        right_first = dr.zeros(b.Bool, n)
+    # Both children's boxes, and what the node's flags say of them (a leaf, a set, co-bounded).
+    bits_l, bits_r = K.flags_children(flags)
+    near_l, far_l = box_entry(*box_l, o, inv_d)
+    near_r, far_r = box_entry(*box_r, o, inv_d)
+    swapped = dr.select(fresh_left, right_first, swapped)
+    single = dr.zeros(b.Bool, n)       # the node is its child in register L
+    vacant = dr.zeros(b.Bool, n)       # the node misses: no child needs searching
+    if tree.options.pass_through:
+        # A positive child whose box the ray does not meet after t_start is outside from
+        # there on. A union with such a child, or a difference with such a subtrahend, is
+        # then its other child: that child takes the node's place in the parent's frame
+        # (no frame is pushed), or, a leaf or set, is searched with its sibling's miss
+        # known (Classify in the same step). A union of two such children, an
+        # intersection with one, a difference with such a minuend: a miss.
+        gone_l = ((bits_l & K.CHILD_NEGATIVE) == 0) & ~((near_l <= far_l) & (far_l >= t_start))
+        gone_r = ((bits_r & K.CHILD_NEGATIVE) == 0) & ~((near_r <= far_r) & (far_r >= t_start))
+        is_union = kind == UNION
+        only_l = fresh_left & gone_r & ~gone_l & (is_union | (kind == DIFFERENCE))
+        only_r = fresh_left & gone_l & ~gone_r & is_union
+        vacant = fresh_left & dr.select(is_union, gone_l & gone_r,
+                                        dr.select(kind == INTERSECTION, gone_l | gone_r, gone_l))
+        single = only_l | only_r
+        swapped = dr.select(only_l, False, dr.select(only_r, True, swapped))
+    use_r = go_right ^ swapped
+    child = dr.select(use_r, node_right, node_left)
+    near, far = dr.select(use_r, near_r, near_l), dr.select(use_r, far_r, far_l)
+    child_bits = dr.select(use_r, bits_r, bits_l)
+    # A set (a union of leaves) is searched as one node, like a leaf (engine.leaf_events).
+    child_is_leaf = (child_bits & K.CHILD_LEAF) != 0
+    if tree.options.sets:
+        child_is_leaf |= (child_bits & K.CHILD_SET) != 0
+    going &= ~vacant
+    reaches = going & (near <= far) & (far >= t_start)      # the box lies (partly) after t_start
+    in_box = reaches & (near <= child_bound)
+    # Past a bound short of tmax, the subtree's state is known (outside if bounded, inside
+    # if co-bounded) but not its next event: a provisional hit at the bound.
+    provisional = reaches & ~in_box & (child_bound < tmax)
+    # An operation child in reach is descended into.
+    descend = in_box & ~child_is_leaf
+    return (kind, group, going, go_right, fresh_left, t_start, swapped, child, child_bits, child_is_leaf,
+            child_bound, entry_bound, exit_bound, single, vacant, in_box, provisional, descend)
+
+
+def _classify(b, tree, kind, group, tie, tmax, t_bound, state, t_start, t_l, leaf_l, info_l, t_r, leaf_r, info_r):
+    """Classify: apply the state table of the node (of `kind`) to its children's hits in
+    registers L and R. Returns the registers, `state` (RETURN, a loop's GoTo, or unchanged)
+    and `t_start` (where a loop restarts)."""
+    classify = state == CLASSIFY
+    is_diff = kind == DIFFERENCE
+    cls_l = K.info_class(info_l)
+    cls_r = K.info_class(info_r)
+    # L - R = L & ~R: complement R's class (a miss of R is an exit at infinity)
+    cls_r = dr.select(is_diff, _complement_class(cls_r), cls_r)
+    table_op = dr.select(kind == UNION, 0, 1)
+    if tree.has_groups:
+        table_op = dr.select(group, K.GROUP_ROW, table_op)
+    row = dr.select(table_op == 0, K.TABLE_WORDS[0], dr.select(table_op == 1, K.TABLE_WORDS[1], K.TABLE_WORDS[2]))
+    action = (row >> (3 * (cls_l * 3 + cls_r))) & 7
+    # Ties: a return needs its hit closer by more than the tie window, except
+    # RET_CLOSER. Where an enter of one child meets an exit of the other within it
+    # (touching or coincident faces, each computed in its own primitive's frame), the
+    # solid does not change there, so the tie loops instead of reporting a false boundary.
+    l_closer = t_l <= t_r
+    # The narrower of the two windows: a coincident pair meets the ray at one slope, and
+    # a steep event next to a grazing one is not widened by it.
+    window = _tie_window(b, tie, dr.minimum(K.info_slope(info_l), K.info_slope(info_r)))
+    apart = dr.abs(t_l - t_r) > window        # false for inf vs inf (NaN)
+    l_strictly, r_strictly = (t_l < t_r) & apart, (t_r < t_l) & apart
+    ret_l = (action == RET_L) | ((action == RET_CLOSER) & l_closer) | ((action == RET_L_ELSE_LOOP_R) & l_strictly)
+    ret_r = (action == RET_R) | ((action == RET_CLOSER) & ~l_closer) | ((action == RET_R_ELSE_LOOP_L) & r_strictly)
+    loop_l = ((action == RET_R_ELSE_LOOP_L) & ~r_strictly) | ((action == LOOP_CLOSER) & l_closer)
+    loop_r = ((action == RET_L_ELSE_LOOP_R) & ~l_strictly) | ((action == LOOP_CLOSER) & ~l_closer)
+    # Nothing lies beyond infinity: a loop from t = inf (inside both forever) returns.
+    ret_l = classify & (ret_l | (loop_l & (t_l == dr.inf)))
+    ret_r = classify & ~ret_l & (ret_r | (loop_r & (t_r == dr.inf)))
+    loop_l = classify & loop_l & (t_l != dr.inf)
+    loop_r = classify & ~loop_l & loop_r & (t_r != dr.inf)
+    # A provisional hit before the node's own bound is not the node's answer: search that
+    # child again from its bound (redo), which finds its real next event.
+    redo_l = ret_l & K.info_provisional(info_l) & (t_l < t_bound)
+    redo_r = ret_r & K.info_provisional(info_r) & (t_r < t_bound)
+    ret_l, ret_r = ret_l & ~redo_l, ret_r & ~redo_r
+    # A loop whose restart lies at or past the node's bound: the node keeps its state up
+    # to the bound (union: inside, the sibling is; otherwise outside), a provisional hit.
+    t_loop = dr.maximum(t_l, t_r)
+    past = (loop_l | loop_r) & (t_loop >= t_bound) & (t_bound < tmax)
+    loop_l, loop_r = (loop_l & ~past) | redo_l, (loop_r & ~past) | redo_r
+    ret_miss = classify & ~(ret_l | ret_r | loop_l | loop_r | past)
+    # A returned right hit of a difference changes class and flips its normal.
+    flip = dr.select(is_diff, FLIP_BIT, 0)
+    info_r_out = K.with_class(info_r, cls_r, flip)
+    # The returned hit goes into both registers (the parent's frame picks the slot).
+    res_t = dr.select(ret_r, t_r, dr.select(ret_l, t_l, dr.select(past, t_bound, dr.inf)))
+    res_leaf = dr.select(ret_r, leaf_r, dr.select(ret_l, leaf_l, NO_LEAF))
+    past_info = dr.select(kind == UNION, b.UInt32(EXIT), b.UInt32(ENTER)) | K.PROVISIONAL_BIT
+    res_info = dr.select(ret_r, info_r_out, dr.select(ret_l, info_l, dr.select(past, past_info, MISS)))
+    returning = ret_l | ret_r | ret_miss | past
+    # A loop advances the child X whose event comes first; until the sibling Y's event the
+    # parent's state is fixed by Y (union: Y inside; intersection: Y outside), so X's events
+    # before t_Y cannot matter. Restarting X at t_Y skips them; the class of X's next event
+    # after t_Y still says X's state from t_Y on. Without the option X restarts at t_X.
+    # A redo restarts at the provisional hit's own bound.
+    if tree.options.restart_at_sibling:
+        t_start = dr.select(loop_l | loop_r, t_loop, t_start)
+    else:
+        t_start = dr.select(loop_l, t_l, dr.select(loop_r, t_r, t_start))
+    t_start = dr.select(redo_l, t_l, dr.select(redo_r, t_r, t_start))
+    t_l, leaf_l, info_l = (dr.select(returning, res_t, t_l), dr.select(returning, res_leaf, leaf_l),
+                           dr.select(returning, res_info, info_l))
+    t_r, leaf_r, info_r = (dr.select(returning, res_t, t_r), dr.select(returning, res_leaf, leaf_r),
+                           dr.select(returning, res_info, info_r))
+    state = dr.select(returning, RETURN, dr.select(loop_l, GOTO_L_LOOP, dr.select(loop_r, GOTO_R_LOOP, state)))
+    return state, t_start, t_l, leaf_l, info_l, t_r, leaf_r, info_r
+
+
 @dr.syntax
 def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
     """Run the automaton. Returns (t, leaf node, info, finished, steps) per lane, all detached;
-    steps are automaton iterations plus set-walk iterations (the work done).
+    steps are automaton steps (iterations, and the further GoTo steps of descents) plus set-walk
+    iterations (the work done).
 
     Lanes where `active` is false do no work and miss (an integrator's finished paths, or
     shadow rays it does not need, would otherwise be traced in full). `start_prim` (per lane,
@@ -125,7 +295,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
     t_bound = b.Float(tmax)                         # events of `node` past this do not matter
     swapped = dr.zeros(b.Bool, n)                   # registers L / R hold `node`'s right / left child
     sp = dr.zeros(b.UInt32, n)                      # shared depth of both stacks
-    steps = dr.zeros(b.UInt32, n)                  # automaton iterations
+    steps = dr.zeros(b.UInt32, n)                  # automaton steps
     walked = dr.zeros(b.UInt32, n)                 # set-walk iterations (engine.leaf_events); a walk runs to
                                                    # its end, the iteration bound is tested between steps
     hit_t = dr.alloc_local(b.Float, tree.stack_size)       # hit stack: t (or a saved t_start)
@@ -152,107 +322,39 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
         # a literal assigned in two sibling branches misbehaved in Dr.Jit 1.5's LLVM backend
         # (tests/test_drjit_workarounds.py).
 
-        # The current node's record serves GoTo (children) and Classify (kind).
-        flags, node_left, node_right, box_l, box_r = node_with_child_boxes(b, tree, node)
-        kind = K.flags_kind(flags)
-
         # ---- GoTo: one child of `node`, from t_start ----
-        going = state < CLASSIFY
-        go_right = (state & 1) == 1
-        # The second child of a fresh search: while the first child's state fixes the node's
-        # (union: inside; intersection, difference: outside), the second child's events before
-        # the first child's event cannot matter (skip_to_sibling: search it from there);
-        # otherwise its events after the first child's event cannot change what the node
-        # returns next (bounded_search: search it only up to there).
-        second = state == GOTO_R_FRESH
-        cls_first = K.info_class(info_l)
-        fixes = dr.select(kind == UNION, cls_first == EXIT, cls_first != EXIT)
-        if dr.hint(tree.has_groups, mode="scalar"):
-            # A group's children are separate solids: none fixes what the other shows.
-            group = K.flags_group(flags)
-            fixes &= ~group
-        if dr.hint(tree.options.skip_to_sibling, mode="scalar"):
-            t_start = dr.select(second & fixes, dr.maximum(t_start, t_l), t_start)
-        child_bound = t_bound
-        if dr.hint(tree.options.bounded_search, mode="scalar"):
-            # Up to the first child's event and its tie window, so that a coincident event of
-            # the second child is seen as the tie it is.
-            reach = t_l + _tie_window(b, tie, K.info_slope(info_l))
-            child_bound = dr.select(second & ~fixes, dr.minimum(t_bound, reach), t_bound)
-        entry_bound = exit_bound = child_bound
-        if dr.hint(tree.options.skip_to_sibling and tree.options.bounded_search, mode="scalar"):
-            # Searched from the first child's event because that child fixed the node until
-            # then, the second child decides what the node does there by its state alone; its
-            # next event matters only where that state keeps the node's state (union and
-            # difference: the second child inside, so its exit; intersection: outside, so its
-            # entry). The other kind of event is searched only for ties (engine.leaf_events).
-            near_tie = t_l + _tie_window(b, tie, MAX_SLOPE)
-            state_only = second & fixes
-            wants_entry = kind == INTERSECTION
-            entry_bound = dr.select(state_only & ~wants_entry, dr.minimum(child_bound, near_tie), child_bound)
-            exit_bound = dr.select(state_only & wants_entry, dr.minimum(child_bound, near_tie), child_bound)
-        fresh_left = state == GOTO_L_FRESH
-        if dr.hint(tree.options.near_first, mode="scalar"):
-            # A fresh search of a union or intersection takes first the child that lies first
-            # along the ray on the node's ORDER axis (as a BVH's ordered traversal does), so
-            # that its event bounds the other. Registers L and R then hold the right and the
-            # left child (`swapped`); the state tables of both operations are symmetric.
-            axis = K.flags_order(flags)
-            d_axis = dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))
-            right_first = (axis != K.NO_ORDER) & ((d_axis < 0) ^ K.flags_left_high(flags))
-        else:
-            right_first = dr.zeros(b.Bool, n)
-        # Both children's boxes, and what the node's flags say of them (a leaf, a set, co-bounded).
-        bits_l, bits_r = K.flags_children(flags)
-        near_l, far_l = box_entry(*box_l, o, inv_d)
-        near_r, far_r = box_entry(*box_r, o, inv_d)
-        swapped = dr.select(fresh_left, right_first, swapped)
-        single = dr.zeros(b.Bool, n)       # the node is its child in register L
-        vacant = dr.zeros(b.Bool, n)       # the node misses: no child needs searching
-        if dr.hint(tree.options.pass_through, mode="scalar"):
-            # A positive child whose box the ray does not meet after t_start is outside from
-            # there on. A union with such a child, or a difference with such a subtrahend, is
-            # then its other child: that child takes the node's place in the parent's frame
-            # (no frame is pushed), or, a leaf or set, is searched with its sibling's miss
-            # known (Classify in the same step). A union of two such children, an
-            # intersection with one, a difference with such a minuend: a miss.
-            gone_l = ((bits_l & K.CHILD_NEGATIVE) == 0) & ~((near_l <= far_l) & (far_l >= t_start))
-            gone_r = ((bits_r & K.CHILD_NEGATIVE) == 0) & ~((near_r <= far_r) & (far_r >= t_start))
-            is_union = kind == UNION
-            only_l = fresh_left & gone_r & ~gone_l & (is_union | (kind == DIFFERENCE))
-            only_r = fresh_left & gone_l & ~gone_r & is_union
-            vacant = fresh_left & dr.select(is_union, gone_l & gone_r,
-                                            dr.select(kind == INTERSECTION, gone_l | gone_r, gone_l))
-            single = only_l | only_r
-            swapped = dr.select(only_l, False, dr.select(only_r, True, swapped))
-        use_r = go_right ^ swapped
-        child = dr.select(use_r, node_right, node_left)
-        near, far = dr.select(use_r, near_r, near_l), dr.select(use_r, far_r, far_l)
-        child_bits = dr.select(use_r, bits_r, bits_l)
-        # A set (a union of leaves) is searched as one node, like a leaf (engine.leaf_events).
-        child_is_leaf = (child_bits & K.CHILD_LEAF) != 0
-        if dr.hint(tree.options.sets, mode="scalar"):
-            child_is_leaf |= (child_bits & K.CHILD_SET) != 0
-        going &= ~vacant
-        reaches = going & (near <= far) & (far >= t_start)      # the box lies (partly) after t_start
-        in_box = reaches & (near <= child_bound)
-        # Past a bound short of tmax, the subtree's state is known (outside if bounded, inside
-        # if co-bounded) but not its next event: a provisional hit at the bound.
-        provisional = reaches & ~in_box & (child_bound < tmax)
-        # Descend into an operation child: push what to do with its hit when it comes back,
-        # and where (unless the child takes this node's place).
-        descend = in_box & ~child_is_leaf
-        push = descend & ~single
-        if push:
-            hit_t.write(dr.select(fresh_left, t_start, dr.select(go_right, t_l, t_r)), sp, push)
-            hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, push)
-            hit_info.write(dr.select(go_right, info_l, info_r), sp, push)
-            frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R))
-                        | dr.select(swapped, SWAPPED_FRAME, 0) | (node << FRAME_NODE_SHIFT), sp, push)
-            bound.write(t_bound, sp, push)
-        sp = dr.select(push, sp + 1, sp)
-        node = dr.select(descend, child, node)
-        t_bound = dr.select(push, child_bound, t_bound)
+        # A descent into an operation child is followed, in the same step, by GoTo at that
+        # child (each counted as a step), so that a step's Classify and Return are not
+        # paid on every level of a descent. The loop's first round only chooses.
+        kind, child, child_bits = dr.zeros(b.UInt32, n), dr.zeros(b.UInt32, n), dr.zeros(b.UInt32, n)
+        going, go_right, fresh_left = dr.zeros(b.Bool, n), dr.zeros(b.Bool, n), dr.zeros(b.Bool, n)
+        child_is_leaf, single, vacant = dr.zeros(b.Bool, n), dr.zeros(b.Bool, n), dr.zeros(b.Bool, n)
+        in_box, provisional, descend = dr.zeros(b.Bool, n), dr.zeros(b.Bool, n), dr.zeros(b.Bool, n)
+        child_bound, entry_bound, exit_bound = dr.zeros(b.Float, n), dr.zeros(b.Float, n), dr.zeros(b.Float, n)
+        group = dr.zeros(b.Bool, n) if tree.has_groups else None
+        choosing = dr.full(b.Bool, True, n)
+        while dr.hint(choosing, label="csg_descend",
+                      exclude=[o, d, inv_d, tie, tmin, tmax, max_iterations, walked, t_l, leaf_l, info_l, t_r,
+                               leaf_r, info_r, start_prim, start_leaf, start_set]):
+            # Push what to do with the child's hit when it comes back, and where (unless the
+            # child takes this node's place).
+            push = descend & ~single
+            if dr.hint(push, exclude=[t_l, leaf_l, info_l, t_r, leaf_r, info_r]):
+                hit_t.write(dr.select(fresh_left, t_start, dr.select(go_right, t_l, t_r)), sp, push)
+                hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, push)
+                hit_info.write(dr.select(go_right, info_l, info_r), sp, push)
+                frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R))
+                            | dr.select(swapped, SWAPPED_FRAME, 0) | (node << FRAME_NODE_SHIFT), sp, push)
+                bound.write(t_bound, sp, push)
+            sp = dr.select(push, sp + 1, sp)
+            node = dr.select(descend, child, node)
+            t_bound = dr.select(push, child_bound, t_bound)
+            state = dr.select(descend, GOTO_L_FRESH, state)
+            steps = dr.select(descend, steps + 1, steps)
+            (kind, group, going, go_right, fresh_left, t_start, swapped, child, child_bits, child_is_leaf, child_bound,
+             entry_bound, exit_bound, single, vacant, in_box, provisional, descend) = _goto(
+                b, tree, o, d, inv_d, tie, tmax, n, node, state, t_start, t_bound, swapped, t_l, info_l)
+            choosing = descend & (steps + walked < max_iterations) & (sp < stack_size)
         # A leaf, or a subtree whose box the ray misses from here on: its hit is known now.
         co_bounded = (child_bits & K.CHILD_NEGATIVE) != 0
         t_c = dr.select(provisional, child_bound, dr.inf)
@@ -276,6 +378,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
             t_c, leaf_c, info_c, iterations = next_event(b, tree, child, o, d, inv_d, t_start, entry_bound,
                                                          exit_bound, tmax, tie, walking, member)
             walked += iterations
+        # `descend` is still set only where the iteration bound stopped the descent: that
+        # lane ends unfinished.
         known = going & ~descend
         set_r, set_l = known & go_right, known & ~go_right
         t_r, leaf_r, info_r = dr.select(set_r, t_c, t_r), dr.select(set_r, leaf_c, leaf_r), dr.select(set_r, info_c, info_r)
@@ -290,71 +394,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
             known, dr.select(fresh_left & ~single, GOTO_R_FRESH, CLASSIFY), dr.select(vacant, CLASSIFY, state)))
 
         # ---- Classify: apply the state table of `node` ----
-        classify = state == CLASSIFY
-        is_diff = kind == DIFFERENCE
-        cls_l = K.info_class(info_l)
-        cls_r = K.info_class(info_r)
-        # L - R = L & ~R: complement R's class (a miss of R is an exit at infinity)
-        cls_r = dr.select(is_diff, _complement_class(cls_r), cls_r)
-        table_op = dr.select(kind == UNION, 0, 1)
-        if dr.hint(tree.has_groups, mode="scalar"):
-            table_op = dr.select(group, K.GROUP_ROW, table_op)
-        row = dr.select(table_op == 0, K.TABLE_WORDS[0], dr.select(table_op == 1, K.TABLE_WORDS[1], K.TABLE_WORDS[2]))
-        action = (row >> (3 * (cls_l * 3 + cls_r))) & 7
-        # Ties: a return needs its hit closer by more than the tie window, except
-        # RET_CLOSER. Where an enter of one child meets an exit of the other within it
-        # (touching or coincident faces, each computed in its own primitive's frame), the
-        # solid does not change there, so the tie loops instead of reporting a false boundary.
-        l_closer = t_l <= t_r
-        # The narrower of the two windows: a coincident pair meets the ray at one slope, and
-        # a steep event next to a grazing one is not widened by it.
-        window = _tie_window(b, tie, dr.minimum(K.info_slope(info_l), K.info_slope(info_r)))
-        apart = dr.abs(t_l - t_r) > window        # false for inf vs inf (NaN)
-        l_strictly, r_strictly = (t_l < t_r) & apart, (t_r < t_l) & apart
-        ret_l = (action == RET_L) | ((action == RET_CLOSER) & l_closer) | ((action == RET_L_ELSE_LOOP_R) & l_strictly)
-        ret_r = (action == RET_R) | ((action == RET_CLOSER) & ~l_closer) | ((action == RET_R_ELSE_LOOP_L) & r_strictly)
-        loop_l = ((action == RET_R_ELSE_LOOP_L) & ~r_strictly) | ((action == LOOP_CLOSER) & l_closer)
-        loop_r = ((action == RET_L_ELSE_LOOP_R) & ~l_strictly) | ((action == LOOP_CLOSER) & ~l_closer)
-        # Nothing lies beyond infinity: a loop from t = inf (inside both forever) returns.
-        ret_l = classify & (ret_l | (loop_l & (t_l == dr.inf)))
-        ret_r = classify & ~ret_l & (ret_r | (loop_r & (t_r == dr.inf)))
-        loop_l = classify & loop_l & (t_l != dr.inf)
-        loop_r = classify & ~loop_l & loop_r & (t_r != dr.inf)
-        # A provisional hit before the node's own bound is not the node's answer: search that
-        # child again from its bound (redo), which finds its real next event.
-        redo_l = ret_l & K.info_provisional(info_l) & (t_l < t_bound)
-        redo_r = ret_r & K.info_provisional(info_r) & (t_r < t_bound)
-        ret_l, ret_r = ret_l & ~redo_l, ret_r & ~redo_r
-        # A loop whose restart lies at or past the node's bound: the node keeps its state up
-        # to the bound (union: inside, the sibling is; otherwise outside), a provisional hit.
-        t_loop = dr.maximum(t_l, t_r)
-        past = (loop_l | loop_r) & (t_loop >= t_bound) & (t_bound < tmax)
-        loop_l, loop_r = (loop_l & ~past) | redo_l, (loop_r & ~past) | redo_r
-        ret_miss = classify & ~(ret_l | ret_r | loop_l | loop_r | past)
-        # A returned right hit of a difference changes class and flips its normal.
-        flip = dr.select(is_diff, FLIP_BIT, 0)
-        info_r_out = K.with_class(info_r, cls_r, flip)
-        # The returned hit goes into both registers (the parent's frame picks the slot).
-        res_t = dr.select(ret_r, t_r, dr.select(ret_l, t_l, dr.select(past, t_bound, dr.inf)))
-        res_leaf = dr.select(ret_r, leaf_r, dr.select(ret_l, leaf_l, NO_LEAF))
-        past_info = dr.select(kind == UNION, b.UInt32(EXIT), b.UInt32(ENTER)) | K.PROVISIONAL_BIT
-        res_info = dr.select(ret_r, info_r_out, dr.select(ret_l, info_l, dr.select(past, past_info, MISS)))
-        returning = ret_l | ret_r | ret_miss | past
-        # A loop advances the child X whose event comes first; until the sibling Y's event the
-        # parent's state is fixed by Y (union: Y inside; intersection: Y outside), so X's events
-        # before t_Y cannot matter. Restarting X at t_Y skips them; the class of X's next event
-        # after t_Y still says X's state from t_Y on. Without the option X restarts at t_X.
-        # A redo restarts at the provisional hit's own bound.
-        if dr.hint(tree.options.restart_at_sibling, mode="scalar"):
-            t_start = dr.select(loop_l | loop_r, t_loop, t_start)
-        else:
-            t_start = dr.select(loop_l, t_l, dr.select(loop_r, t_r, t_start))
-        t_start = dr.select(redo_l, t_l, dr.select(redo_r, t_r, t_start))
-        t_l, leaf_l, info_l = (dr.select(returning, res_t, t_l), dr.select(returning, res_leaf, leaf_l),
-                               dr.select(returning, res_info, info_l))
-        t_r, leaf_r, info_r = (dr.select(returning, res_t, t_r), dr.select(returning, res_leaf, leaf_r),
-                               dr.select(returning, res_info, info_r))
-        state = dr.select(returning, RETURN, dr.select(loop_l, GOTO_L_LOOP, dr.select(loop_r, GOTO_R_LOOP, state)))
+        state, t_start, t_l, leaf_l, info_l, t_r, leaf_r, info_r = _classify(
+            b, tree, kind, group, tie, tmax, t_bound, state, t_start, t_l, leaf_l, info_l, t_r, leaf_r, info_r)
 
         # ---- Return: hand the hit (in both registers) to the parent's frame ----
         at_root = (state == RETURN) & (sp == 0)

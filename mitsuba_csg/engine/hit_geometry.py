@@ -58,9 +58,18 @@ def _solid_normal(b, rows, n_local, info, d, active):
 
 
 def hit_normal(tree, prim, info, o, d, t, active):
-    """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`."""
-    rows, _, _, _, _, _, _, n_local, d, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
-    return _solid_normal(tree.b, rows, n_local, info, d, active)
+    """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`
+    (zero where not `active`)."""
+    def normal(prim, info, o, d, t, active):
+        rows, _, _, _, _, _, _, n_local, d_scene, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
+        return _solid_normal(tree.b, rows, n_local, info, d_scene, active)
+
+    def none(prim, info, o, d, t, active):
+        return dr.zeros(tree.b.Array3f, dr.width(t))
+    # A branch, not a masked evaluation: packets of rays that all missed (most camera rays
+    # of a small model, the sky in a path tracer) skip the gathers and the surface gradient.
+    # City-3385 primary rays: 1.3 ms of 17.7 ms a frame.
+    return dr.if_stmt((prim, info, o, d, t, active), active, normal, none, mode="symbolic")
 
 
 def face_at(tree, prim, info, o, d, t, active):
