@@ -325,21 +325,18 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
         # ---- GoTo: one child of `node`, from t_start ----
         # A descent into an operation child is followed, in the same step, by GoTo at that
         # child (each counted as a step), so that a step's Classify and Return are not
-        # paid on every level of a descent. The loop's first round only chooses.
-        kind, child, child_bits = dr.zeros(b.UInt32, n), dr.zeros(b.UInt32, n), dr.zeros(b.UInt32, n)
-        going, go_right, fresh_left = dr.zeros(b.Bool, n), dr.zeros(b.Bool, n), dr.zeros(b.Bool, n)
-        child_is_leaf, single, vacant = dr.zeros(b.Bool, n), dr.zeros(b.Bool, n), dr.zeros(b.Bool, n)
-        in_box, provisional, descend = dr.zeros(b.Bool, n), dr.zeros(b.Bool, n), dr.zeros(b.Bool, n)
-        child_bound, entry_bound, exit_bound = dr.zeros(b.Float, n), dr.zeros(b.Float, n), dr.zeros(b.Float, n)
-        group = dr.zeros(b.Bool, n) if tree.has_groups else None
-        choosing = dr.full(b.Bool, True, n)
+        # paid on every level of a descent.
+        (kind, group, going, go_right, fresh_left, t_start, swapped, child, child_bits, child_is_leaf, child_bound,
+         entry_bound, exit_bound, single, vacant, in_box, provisional, descend) = _goto(
+            b, tree, o, d, inv_d, tie, tmax, n, node, state, t_start, t_bound, swapped, t_l, info_l)
+        choosing = descend & (steps + walked < max_iterations) & (sp < stack_size)
         while dr.hint(choosing, label="csg_descend",
-                      exclude=[o, d, inv_d, tie, tmin, tmax, max_iterations, walked, t_l, leaf_l, info_l, t_r,
-                               leaf_r, info_r, start_prim, start_leaf, start_set]):
+                      exclude=[o, d, inv_d, tie, tmin, tmax, max_iterations, walked, t_start, t_l, leaf_l, info_l,
+                               t_r, leaf_r, info_r, start_prim, start_leaf, start_set]):
             # Push what to do with the child's hit when it comes back, and where (unless the
             # child takes this node's place).
-            push = descend & ~single
-            if dr.hint(push, exclude=[t_l, leaf_l, info_l, t_r, leaf_r, info_r]):
+            push = ~single
+            if dr.hint(push, exclude=[t_start, t_l, leaf_l, info_l, t_r, leaf_r, info_r]):
                 hit_t.write(dr.select(fresh_left, t_start, dr.select(go_right, t_l, t_r)), sp, push)
                 hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, push)
                 hit_info.write(dr.select(go_right, info_l, info_r), sp, push)
@@ -347,13 +344,16 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
                             | dr.select(swapped, SWAPPED_FRAME, 0) | (node << FRAME_NODE_SHIFT), sp, push)
                 bound.write(t_bound, sp, push)
             sp = dr.select(push, sp + 1, sp)
-            node = dr.select(descend, child, node)
+            node = b.UInt32(child)
             t_bound = dr.select(push, child_bound, t_bound)
-            state = dr.select(descend, GOTO_L_FRESH, state)
-            steps = dr.select(descend, steps + 1, steps)
-            (kind, group, going, go_right, fresh_left, t_start, swapped, child, child_bits, child_is_leaf, child_bound,
+            state = dr.select(choosing, GOTO_L_FRESH, state)
+            steps += 1
+            # At the child, a fresh search: a literal state, so that what only other states
+            # need folds away (t_start among them: it stays).
+            (kind, group, going, go_right, fresh_left, _, swapped, child, child_bits, child_is_leaf, child_bound,
              entry_bound, exit_bound, single, vacant, in_box, provisional, descend) = _goto(
-                b, tree, o, d, inv_d, tie, tmax, n, node, state, t_start, t_bound, swapped, t_l, info_l)
+                b, tree, o, d, inv_d, tie, tmax, n, node, dr.full(b.UInt32, GOTO_L_FRESH, n), t_start, t_bound,
+                swapped, t_l, info_l)
             choosing = descend & (steps + walked < max_iterations) & (sp < stack_size)
         # A leaf, or a subtree whose box the ray misses from here on: its hit is known now.
         co_bounded = (child_bits & K.CHILD_NEGATIVE) != 0
