@@ -72,24 +72,14 @@ def leaf_hit(b, tree, flags, prim, o, d, t_start, tie):
     return t, K.hit_info(cls, dr.select(complemented, FLIP_BIT, 0), face, slope), non_convex
 
 
-@dr.syntax
 def member_hit(b, tree, node, flags, prim, o, d, t_start, tie, active):
     """(t, info, non-convex, leaf node, leaf intersections) of a set member's first event
     after t_start: a leaf's own, or a compound's (`compound_hit`, compiled in only for trees
     that have compounds)."""
-    if dr.hint(not tree.has_compounds, mode="scalar"):
+    if not tree.has_compounds:
         t, info, non_convex = leaf_hit(b, tree, flags, prim, o, d, t_start, tie)
         return t, info, non_convex, b.UInt32(node), 1
-    width = dr.width(t_start)
-    compound = active & (K.flags_kind(flags) != K.LEAF)
-    t, info, non_convex = dr.full(b.Float, dr.inf, width), dr.full(b.UInt32, MISS, width), dr.zeros(b.Bool, width)
-    leaf = b.UInt32(node)
-    evaluated = dr.full(b.UInt32, 1, width)
-    if dr.hint(compound, exclude=[o, d, tie]):
-        t, info, non_convex, leaf, evaluated = compound_hit(b, tree, node, o, d, t_start, tie, compound)
-    else:
-        t, info, non_convex = leaf_hit(b, tree, flags, prim, o, d, t_start, tie)
-    return t, info, non_convex, leaf, evaluated
+    return compound_hit(b, tree, node, flags, prim, o, d, t_start, tie, active)
 
 
 # Rounds of `compound_hit` before it gives up (each passes at least one of the literals' at
@@ -98,7 +88,7 @@ _COMPOUND_ROUNDS = 2 * K.MAX_COMPOUND_LITERALS + 2
 
 
 @dr.syntax
-def compound_hit(b, tree, node, o, d, t_start, tie, active):
+def compound_hit(b, tree, node, flags, prim, o, d, t_start, tie, active):
     """(t, info, non-convex, leaf node, leaf intersections) of the first event after t_start of a compound set
     member: an intersection of up to MAX_COMPOUND_LITERALS convex leaves and complements of
     convex leaves (a satellite's wing with its cut-outs, `engine.device`).
@@ -109,11 +99,20 @@ def compound_hit(b, tree, node, o, d, t_start, tie, active):
     literal outside for good: no event. Otherwise the next round starts at the latest entry
     of the literals outside. A literal whose exit lies within the tie window after an entry
     at cur leaves as another enters (touching faces, as in the state tables): it counts as
-    outside, its exit as an entry to wait for.
+    outside, its exit as an entry to wait for. A literal outside for good (a miss) ends the
+    search at once.
+
+    A plain leaf member (`flags`, `prim`: the member's record) is a compound of one literal,
+    itself: its event is its first. A packet whose lanes hold members of both kinds then
+    runs one leaf intersection per round, instead of the rounds and then the plain leaves'.
     """
     width = dr.width(t_start)
-    record = dr.gather(b.UInt32, tree.walk_entry, node, active)
-    literals = dr.gather(b.module.Array4u, tree.compound_literals, record, active)
+    plain = b.Bool(active) & (K.flags_kind(flags) == K.LEAF)
+    record = dr.gather(b.UInt32, tree.walk_entry, node, active & ~plain)
+    literals = dr.gather(b.module.Array4u, tree.compound_literals, record, active & ~plain)
+    # A plain leaf member is a compound of one literal: itself.
+    literals = b.module.Array4u(dr.select(plain, b.UInt32(node), literals[0]),
+                                *(dr.select(plain, K.NO_LITERAL, literals[i]) for i in range(1, 4)))
     count = dr.zeros(b.UInt32, width)
     non_convex = dr.zeros(b.Bool, width)
     for slot in range(K.MAX_COMPOUND_LITERALS):
@@ -136,13 +135,15 @@ def compound_hit(b, tree, node, o, d, t_start, tie, active):
     rounds = dr.zeros(b.UInt32, width)
     evaluated = dr.zeros(b.UInt32, width)
     done = ~b.Bool(active)
-    while dr.hint(~done, label="csg_compound", exclude=[o, d, tie, literals, count]):
+    member_flags, member_prim = flags, prim
+    while dr.hint(~done, label="csg_compound", exclude=[o, d, tie, literals, count, plain, member_flags, member_prim]):
         literal = dr.select(k == 0, literals[0], dr.select(k == 1, literals[1], dr.select(k == 2, literals[2],
                                                                                           literals[3])))
         leaf = literal & ~b.UInt32(K.LITERAL_COMPLEMENT)
-        flags, prim, _, _ = node_record(b, tree, leaf, ~done)
+        flags, prim, _, _ = node_record(b, tree, leaf, ~done & ~plain)
+        flags, prim = dr.select(plain, member_flags, flags), dr.select(plain, member_prim, prim)
         flags = flags | dr.select((literal & K.LITERAL_COMPLEMENT) != 0, b.UInt32(K.NEGATIVE_BIT), 0)
-        t_k, info_k, _ = leaf_hit(b, tree, flags, prim, o, d, cur, tie)
+        t_k, info_k, odd_k = leaf_hit(b, tree, flags, prim, o, d, cur, tie)
         evaluated += 1
         cls_k = K.info_class(info_k)
         window = tie_window(b, tie, dr.minimum(K.info_slope(info_k), K.info_slope(cand_info)))
@@ -160,11 +161,15 @@ def compound_hit(b, tree, node, o, d, t_start, tie, active):
         last = k + 1 >= count
         exits = last & all_in & (rounds == 0)
         enters = last & all_in & (rounds > 0)
-        misses = last & ~all_in & (never | (rounds + 1 >= _COMPOUND_ROUNDS))
+        misses = never | (last & ~all_in & (rounds + 1 >= _COMPOUND_ROUNDS))
         res_t = dr.select(exits, exit_t, dr.select(enters, cand_t, res_t))
         res_leaf = dr.select(exits, exit_leaf, dr.select(enters, cand_leaf, res_leaf))
         res_info = dr.select(exits, exit_info, dr.select(enters, cand_info, res_info))
-        done |= exits | enters | misses
+        # A plain leaf's event is its own, whatever its class.
+        res_t, res_leaf, res_info = dr.select(plain, t_k, res_t), dr.select(plain, leaf, res_leaf), \
+            dr.select(plain, info_k, res_info)
+        non_convex |= plain & odd_k
+        done |= exits | enters | misses | plain
         advance = last & ~done
         cur = dr.select(advance, late_t, cur)
         cand_t, cand_leaf, cand_info = dr.select(advance, late_t, cand_t), dr.select(advance, late_leaf, cand_leaf), \

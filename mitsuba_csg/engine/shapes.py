@@ -501,6 +501,19 @@ def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o
                   dr.dot(b.Array3f(xf_rows[2].x, xf_rows[2].y, xf_rows[2].z), d_world))
     t, face, cls, plane_normal = _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d,
                                                     t_start, mesh, kinds)
+    # A miss has no surface point: its slope is never read (a miss's t is inf wherever a tie
+    # window meets it), and packets whose lanes all missed skip the surface function.
+    slope = dr.if_stmt((b, shape, face, param, plane_normal, o, d, t, xf_rows, d_world, kinds), dr.isfinite(t),
+                       _event_slope, _no_slope, label="csg_event_slope")
+    return t, face, cls, slope
+
+
+def _no_slope(b, shape, face, param, plane_normal, o, d, t, xf_rows, d_world, kinds):
+    return dr.full(b.UInt32, MAX_SLOPE, dr.width(t))
+
+
+def _event_slope(b, shape, face, param, plane_normal, o, d, t, xf_rows, d_world, kinds):
+    """The SLOPE exponent of the event at t (engine.layout)."""
     plane = b.Array4f(plane_normal.x, plane_normal.y, plane_normal.z, 0.0)
     _, grad = surface_function(b.module, shape, face, param, plane, o + t * d, kinds)
     # The world normal is M^T grad for the rows M of world -> canonical; grad . d is the same
@@ -508,7 +521,7 @@ def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o
     normal = b.Array3f(*(xf_rows[0][i] * grad.x + xf_rows[1][i] * grad.y + xf_rows[2][i] * grad.z
                          for i in range(3)))
     cos = dr.abs(dr.dot(grad, d)) * dr.rsqrt(dr.squared_norm(normal) * dr.squared_norm(d_world))
-    return t, face, cls, _slope_exponent(b, cos)
+    return _slope_exponent(b, cos)
 
 
 def _slope_exponent(b, cos):
