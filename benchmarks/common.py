@@ -72,6 +72,25 @@ def best_of(fn, repeats: int = 5) -> dict:
     return {"min_s": min(times), "median_s": statistics.median(times), "runs": times, "first_s": first}
 
 
+def alternating(fns: dict, repeats: int = 5) -> dict:
+    """best_of for several functions whose times are compared as ratios: one warm-up run each,
+    then `repeats` rounds that run each once in turn, so that a machine whose speed drifts
+    (a shared host, turbo) slows all of them alike. {name: best_of's dict}."""
+    first = {}
+    for name, fn in fns.items():
+        t0 = time.perf_counter()
+        fn()
+        first[name] = time.perf_counter() - t0
+    times = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    return {name: {"min_s": min(ts), "median_s": statistics.median(ts), "runs": ts, "first_s": first[name]}
+            for name, ts in times.items()}
+
+
 def table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:
     """columns: (key, header, format)."""
     head = [h for _, h, _ in columns]

@@ -17,6 +17,9 @@ CSG shape, and Mitsuba's own `path` with the mesh in its place.
 CSG frames are timed twice: traced (each call builds the kernel in Python, then runs the
 cached compiled kernel) and frozen (`trace_rays(frozen=True)`: the recorded kernels
 replayed, as a render loop of fixed size would); Embree's Mitsuba call traces almost nothing.
+The traced, frozen and Embree frames (and the csg_path and path frames) run in turn, round
+after round (`common.alternating`): on a shared machine whose speed drifts over minutes, a
+ratio of frames timed minutes apart drifted with it.
 """
 from __future__ import annotations
 
@@ -28,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import common
-from trace_throughput import measure, scenes_with_rays
+from trace_throughput import primary_frame, scenes_with_rays
 
 
 def mitsuba_mesh(verts, tris):
@@ -42,9 +45,9 @@ def mitsuba_mesh(verts, tris):
     return mesh
 
 
-def embree_primary(mesh, o, d, repeats, timings=None) -> float:
-    """Best seconds of Embree primary rays (t, normal, primitive) on a Mitsuba mesh; the
-    seconds of the scene build (Embree's BVH) go into `timings["bvh_s"]`."""
+def embree_frame(mesh, o, d, timings=None):
+    """A function that traces Embree primary rays (t, normal, primitive) on a Mitsuba mesh;
+    the seconds of the scene build (Embree's BVH) go into `timings["bvh_s"]`."""
     import drjit as dr
     import mitsuba as mi
     t0 = time.perf_counter()
@@ -60,7 +63,12 @@ def embree_primary(mesh, o, d, repeats, timings=None) -> float:
         si = scene.ray_intersect(ray)
         dr.eval(si.t, si.n, si.prim_index)
         dr.sync_thread()
-    return common.best_of(run, repeats)["min_s"]
+    return run
+
+
+def embree_primary(mesh, o, d, repeats, timings=None) -> float:
+    """Best seconds of Embree primary rays on a Mitsuba mesh (`embree_frame`)."""
+    return common.best_of(embree_frame(mesh, o, d, timings), repeats)["min_s"]
 
 
 def composed_mesh(model, segments):
@@ -84,7 +92,9 @@ def composed_mesh(model, segments):
     return np.concatenate(verts), np.concatenate(tris)
 
 
-def mesh_route(model, o, d, segments, repeats, compose=False):
+def mesh_route(model, o, d, segments, compose=False):
+    """(Mitsuba mesh, its row: triangles and set-up seconds, a function tracing its Embree
+    primary-ray frame)."""
     import mitsuba_csg as csg
     from mitsuba_csg.formats.mesh_export import mesh_arrays
     t0 = time.perf_counter()
@@ -94,10 +104,9 @@ def mesh_route(model, o, d, segments, repeats, compose=False):
     mesh = mitsuba_mesh(verts, tris)
     build_s = time.perf_counter() - t0
     timings = {}
-    embree_s = embree_primary(mesh, o, d, repeats, timings)
+    embree = embree_frame(mesh, o, d, timings)
     # The scene build: the Mitsuba mesh and Embree's BVH over it.
-    return mesh, dict(triangles=len(tris), boolean_s=boolean_s, scene_build_s=build_s + timings["bvh_s"],
-                      embree_s=embree_s)
+    return mesh, dict(triangles=len(tris), boolean_s=boolean_s, scene_build_s=build_s + timings["bvh_s"]), embree
 
 
 def path_frames(model, mesh, width, height, repeats, directory) -> dict:
@@ -112,14 +121,15 @@ def path_frames(model, mesh, width, height, repeats, directory) -> dict:
     ply = str(directory / "mesh.ply")
     mesh.write_ply(ply)
     mesh_dict["model"] = {"type": "ply", "filename": ply, "bsdf": mesh_dict["model"]["bsdf"]}
-    out = {}
-    for key, scene_dict in (("csg_path_s", csg_dict), ("mesh_path_s", mesh_dict)):
+    def frame(scene_dict):
         scene = mi.load_dict(scene_dict)
 
         def run():
             dr.eval(mi.render(scene, spp=1))
             dr.sync_thread()
-        out[key] = common.best_of(run, repeats)["min_s"]
+        return run
+    times = common.alternating({"csg_path_s": frame(csg_dict), "mesh_path_s": frame(mesh_dict)}, repeats)
+    out = {key: timing["min_s"] for key, timing in times.items()}
     out["path_ratio"] = out["csg_path_s"] / out["mesh_path_s"]
     return out
 
@@ -141,12 +151,13 @@ def main(argv=None):
         t0 = time.perf_counter()
         prepared = csg.prepare(model)
         prepare_s = time.perf_counter() - t0
-        timing, info = measure(prepared, o, d, args.repeats)
-        frozen, _ = measure(prepared, o, d, args.repeats, frozen=True)
+        mesh, mesh_row, embree = mesh_route(model, o, d, args.segments, args.compose)
+        # The three frames in turn, round after round: their ratios do not drift with the machine.
+        times = common.alternating({"traced": primary_frame(prepared, o, d), "frozen": primary_frame(
+            prepared, o, d, frozen=True), "embree": embree}, args.repeats)
         row = dict(scene=scene, primitives=prepared.flat.num_prims, csg_prepare_s=prepare_s,
-                   csg_trace_s=timing["min_s"], csg_mrays_s=width * height / timing["min_s"] / 1e6,
-                   csg_frozen_s=frozen["min_s"])
-        mesh, mesh_row = mesh_route(model, o, d, args.segments, args.repeats, args.compose)
+                   csg_trace_s=times["traced"]["min_s"], csg_mrays_s=width * height / times["traced"]["min_s"] / 1e6,
+                   csg_frozen_s=times["frozen"]["min_s"], embree_s=times["embree"]["min_s"])
         mesh_row["composed"] = args.compose
         row.update(mesh_row)
         if not args.no_path:

@@ -48,12 +48,12 @@ def rays_for(model, width, height):
     return o, d
 
 
-def measure(prepared, o, d, repeats, frozen=False, reorder=False, hits=None, start_prim=None):
-    """Best seconds of a primary-ray frame (hits, normals, steps) and its statistics;
-    `frozen` replays the recorded kernels (trace_rays(frozen=True)) instead of tracing them,
-    `reorder` sorts the rays first (trace_rays(reorder=True)), `start_prim` (numpy, per ray)
-    passes trace_rays the primitive each ray starts on. The last run's RayHits go into
-    `hits["h"]` when a dict is given."""
+def primary_frame(prepared, o, d, frozen=False, reorder=False, hits=None, start_prim=None):
+    """A function that traces one primary-ray frame (hits, normals, steps) of rays o, d
+    (numpy): `frozen` replays the recorded kernels (trace_rays(frozen=True)) instead of
+    tracing them, `reorder` sorts the rays first (trace_rays(reorder=True)), `start_prim`
+    (numpy, per ray) passes trace_rays the primitive each ray starts on. Each run's RayHits
+    go into `hits["h"]` when a dict is given."""
     import drjit as dr
 
     from mitsuba_csg.queries import rays_to_device, trace_rays
@@ -68,7 +68,14 @@ def measure(prepared, o, d, repeats, frozen=False, reorder=False, hits=None, sta
         dr.eval(h.t, h.normal, h.prim, h.steps, h.finished)
         dr.sync_thread()
         out["h"] = h
-    timing = common.best_of(run, repeats)
+    return run
+
+
+def measure(prepared, o, d, repeats, frozen=False, reorder=False, hits=None, start_prim=None):
+    """Best seconds of a primary-ray frame (`primary_frame`) and its statistics. The last
+    run's RayHits go into `hits["h"]` when a dict is given."""
+    out = {} if hits is None else hits
+    timing = common.best_of(primary_frame(prepared, o, d, frozen, reorder, out, start_prim), repeats)
     h = out["h"]
     steps = h.steps.numpy()
     return timing, {"mean_steps": float(steps.mean()), "max_steps": int(steps.max()),
