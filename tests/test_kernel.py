@@ -153,7 +153,8 @@ def test_satellite_parts_are_compound_members():
     from mitsuba_csg import scenes
     tree = csg.prepare(scenes.satellites(8)).tree
     assert tree.has_compounds
-    literals = tree.compound_literals.numpy().reshape(-1, 4)
+    from mitsuba_csg.engine import layout as K
+    literals = tree.compound_literals.numpy().reshape(-1, K.COMPOUND_RECORD_WORDS)[:, :K.MAX_COMPOUND_LITERALS]
     assert len(literals) == 8 * 3                          # two wings and a dish each
     assert sorted((literals != 0xFFFFFFFF).sum(axis=1).tolist()) == [3] * 24
 

@@ -78,8 +78,9 @@ class KernelTree:
                             # the node itself for a leaf); a compound member's literal record
     neighbour_entry: object  # UInt32 per node: where a set walk inside at this member's exit starts
                              # (its neighbour tree in set_nodes, engine.neighbours; NO_ENTRY: the set's root)
-    compound_literals: object  # UInt32, MAX_COMPOUND_LITERALS per compound set member: its literals
-                               # (layout.LITERAL_COMPLEMENT | leaf node id; NO_LITERAL for none)
+    compound_literals: object  # UInt32, COMPOUND_RECORD_WORDS per compound set member: its literals
+                               # (layout.LITERAL_COMPLEMENT | leaf node id; NO_LITERAL for none),
+                               # then their primitives
     prim_start: object      # UInt32, 2 per primitive: its leaf node, and the set that leaf is a member
                             # of (NO_LEAF if none): where a ray starting on the primitive's surface
                             # starts inside a set member (engine.leaf_events.next_event's `start_member`)
@@ -407,10 +408,11 @@ def _compound_roots(kind, neg, group, left, right, parent, flat) -> np.ndarray:
 
 
 def _compound_literals(compound, kind, left, right, walk_entry) -> np.ndarray:
-    """Literal records (layout.MAX_COMPOUND_LITERALS words each) of the compound members, whose
-    walk_entry becomes their record's index."""
+    """Literal records (layout.COMPOUND_RECORD_WORDS words each: the literals, then their leaves'
+    primitives, so that a literal's intersection reads no node record) of the compound members,
+    whose walk_entry becomes their record's index."""
     roots = np.flatnonzero(compound)
-    records = np.full((max(len(roots), 1), K.MAX_COMPOUND_LITERALS), K.NO_LITERAL, np.uint32)
+    records = np.full((max(len(roots), 1), K.COMPOUND_RECORD_WORDS), K.NO_LITERAL, np.uint32)
     for index, root in enumerate(roots):
         found, pending = [], [(int(root), False)]
         while pending:
@@ -421,6 +423,8 @@ def _compound_literals(compound, kind, left, right, walk_entry) -> np.ndarray:
                 pending.append((int(right[node]), complement or kind[node] == K.DIFFERENCE))
                 pending.append((int(left[node]), complement))
         records[index, :len(found)] = found
+        leaves = np.asarray(found, np.int64) & (K.LITERAL_COMPLEMENT - 1)
+        records[index, K.MAX_COMPOUND_LITERALS:K.MAX_COMPOUND_LITERALS + len(found)] = left[leaves]
         walk_entry[root] = index
     return records
 

@@ -166,8 +166,10 @@ SET_NODE_FLOATS = 32       # engine.device: a 4-wide node of a set
 SET_NODE_TAG = 1 << 31     # a set walk's reference to a 4-wide node (else a member's node id)
 
 # A compound set member (engine.device, engine.leaf_events.compound_hit): an intersection of
-# convex leaves and complements of convex leaves, listed in a record of literal words.
+# convex leaves and complements of convex leaves, listed in a record of literal words, then
+# the literals' primitives (one word each).
 MAX_COMPOUND_LITERALS = 4
+COMPOUND_RECORD_WORDS = 2 * MAX_COMPOUND_LITERALS
 LITERAL_COMPLEMENT = 1 << 31   # the literal is the leaf's complement (the leaf node id below)
 NO_LITERAL = 0xFFFFFFFF
 PRIM_ROWS, PRIM_PARAMS, PRIM_PLANE_START, PRIM_COUNT_SHAPE = 0, 12, 14, 15

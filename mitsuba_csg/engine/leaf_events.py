@@ -82,6 +82,14 @@ def member_hit(b, tree, node, flags, prim, o, d, t_start, tie, active):
     return compound_hit(b, tree, node, flags, prim, o, d, t_start, tie, active)
 
 
+def _slot(k, values):
+    """values[k] per lane (k < len(values))."""
+    value = values[-1]
+    for slot in range(len(values) - 2, -1, -1):
+        value = dr.select(k == slot, values[slot], value)
+    return value
+
+
 # Rounds of `compound_hit` before it gives up (each passes at least one of the literals' at
 # most two events, so 2 x MAX_COMPOUND_LITERALS + 1 suffice).
 _COMPOUND_ROUNDS = 2 * K.MAX_COMPOUND_LITERALS + 2
@@ -102,17 +110,20 @@ def compound_hit(b, tree, node, flags, prim, o, d, t_start, tie, active):
     outside, its exit as an entry to wait for. A literal outside for good (a miss) ends the
     search at once.
 
-    A plain leaf member (`flags`, `prim`: the member's record) is a compound of one literal,
+    A plain leaf member (`flags`, `prim`: the member's node record) is a compound of one literal,
     itself: its event is its first. A packet whose lanes hold members of both kinds then
     runs one leaf intersection per round, instead of the rounds and then the plain leaves'.
     """
     width = dr.width(t_start)
     plain = b.Bool(active) & (K.flags_kind(flags) == K.LEAF)
     record = dr.gather(b.UInt32, tree.walk_entry, node, active & ~plain)
-    literals = dr.gather(b.module.Array4u, tree.compound_literals, record, active & ~plain)
+    words = dr.gather(b.module.ArrayXu, tree.compound_literals, record, active & ~plain,
+                      shape=(K.COMPOUND_RECORD_WORDS, width))
     # A plain leaf member is a compound of one literal: itself.
-    literals = b.module.Array4u(dr.select(plain, b.UInt32(node), literals[0]),
-                                *(dr.select(plain, K.NO_LITERAL, literals[i]) for i in range(1, 4)))
+    literals = [dr.select(plain, b.UInt32(node), words[0])] + \
+        [dr.select(plain, K.NO_LITERAL, words[i]) for i in range(1, K.MAX_COMPOUND_LITERALS)]
+    prims = [dr.select(plain, prim, words[K.MAX_COMPOUND_LITERALS])] + \
+        [words[K.MAX_COMPOUND_LITERALS + i] for i in range(1, K.MAX_COMPOUND_LITERALS)]
     count = dr.zeros(b.UInt32, width)
     non_convex = dr.zeros(b.Bool, width)
     for slot in range(K.MAX_COMPOUND_LITERALS):
@@ -135,14 +146,11 @@ def compound_hit(b, tree, node, flags, prim, o, d, t_start, tie, active):
     rounds = dr.zeros(b.UInt32, width)
     evaluated = dr.zeros(b.UInt32, width)
     done = ~b.Bool(active)
-    member_flags, member_prim = flags, prim
-    while dr.hint(~done, label="csg_compound", exclude=[o, d, tie, literals, count, plain, member_flags, member_prim]):
-        literal = dr.select(k == 0, literals[0], dr.select(k == 1, literals[1], dr.select(k == 2, literals[2],
-                                                                                          literals[3])))
+    while dr.hint(~done, label="csg_compound", exclude=[o, d, tie, literals, prims, count]):
+        literal, prim = _slot(k, literals), _slot(k, prims)
         leaf = literal & ~b.UInt32(K.LITERAL_COMPLEMENT)
-        flags, prim, _, _ = node_record(b, tree, leaf, ~done & ~plain)
-        flags, prim = dr.select(plain, member_flags, flags), dr.select(plain, member_prim, prim)
-        flags = flags | dr.select((literal & K.LITERAL_COMPLEMENT) != 0, b.UInt32(K.NEGATIVE_BIT), 0)
+        # Literal leaves are positive (engine.device): the literal's own bit is the complement.
+        flags = dr.select((literal & K.LITERAL_COMPLEMENT) != 0, b.UInt32(K.NEGATIVE_BIT), 0)
         t_k, info_k, odd_k = leaf_hit(b, tree, flags, prim, o, d, cur, tie)
         evaluated += 1
         cls_k = K.info_class(info_k)
