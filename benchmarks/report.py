@@ -145,7 +145,9 @@ def main():
                 "The last columns render one 1-spp frame of the command line's model scene (floor, sky, sun, "
                 "max_depth 6) both ways: `csg_path` on the CSG shape, Mitsuba's `path` with the mesh in its place.",
                 "'frozen' replays the recorded kernels (`trace_rays(frozen=True)`, as a render loop of fixed "
-                "size can) instead of tracing them in Python per frame.",
+                "size can) instead of tracing them in Python per frame. The traced, frozen and Embree frames (and "
+                "the csg_path and path frames) run in turn, round after round, each reported as its best round: "
+                "the ratios do not drift with the speed of a shared machine.",
                 "", "| scene | prims | mesh triangles | booleans s | scene build s | Embree s/frame | optimize s | "
                 "CSG s/frame | CSG / Embree per frame | frozen CSG s / Embree | first frame: mesh s / CSG s | path s | "
                 "csg_path s | csg_path / path |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
