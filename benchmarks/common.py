@@ -61,15 +61,7 @@ def machine() -> dict:
 def best_of(fn, repeats: int = 5) -> dict:
     """Run fn() `repeats` times; report min and median seconds. A first run before them is
     warm-up (kernels compiled, or read from Dr.Jit's cache); `first_s` is its time."""
-    t0 = time.perf_counter()
-    fn()
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return {"min_s": min(times), "median_s": statistics.median(times), "runs": times, "first_s": first}
+    return alternating({"fn": fn}, repeats)["fn"]
 
 
 def alternating(fns: dict, repeats: int = 5) -> dict:
