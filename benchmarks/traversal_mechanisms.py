@@ -14,9 +14,10 @@ import argparse
 
 import common
 
-# `compounds` and `neighbour_passes` work inside sets: without sets (alone) they change nothing.
+# `compounds`, `neighbour_passes` and `cell_passes` work inside sets: without sets (alone) they
+# change nothing.
 MECHANISMS = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through",
-              "compounds", "neighbour_passes")
+              "compounds", "neighbour_passes", "cell_passes")
 
 
 def configurations():

@@ -39,6 +39,7 @@ TRAVERSALS = {
     "small_sets": TraversalOptions(min_set_size=2),      # unions of 2 and 3 leaves walked as sets too
     "no_compounds": TraversalOptions(compounds=False),   # set members are leaves only
     "no_neighbours": TraversalOptions(neighbour_passes=False),   # passes from inside start at the set's root
+    "no_cells": TraversalOptions(cell_passes=False),    # passes asking a point's state start at the set's root
     "no_pass_through": TraversalOptions(pass_through=False),
     "none": TraversalOptions(*[False] * 6),
 }
@@ -373,14 +374,16 @@ def test_start_prim_saves_steps_on_rays_leaving_a_hole():
     assert hinted.steps.numpy().mean() < 0.9 * plain.steps.numpy().mean()
 
 
+@pytest.mark.parametrize("mechanism", ["neighbour_passes", "cell_passes"])
 @given(model=st.one_of(unions_of_leaves(), unions_of_compounds()), seed=st.integers(0, 2**31),
        optimize=st.booleans())
-def test_neighbour_passes_change_no_result(model, seed, optimize):
+def test_local_passes_change_no_result(mechanism, model, seed, optimize):
     """A set walk inside at a member's exit that searches only that member's neighbours
     (engine.neighbours: a ray leaving a member's surface into it, a chain through overlapping
-    members) finds what the walk from the set's root finds, for rays from anywhere and for
-    rays continuing from hits with the hit's primitive as `start_prim`; and agrees with the
-    float64 reference."""
+    members), and a walk asking only the set's state at a point that searches only the
+    members near the point's grid cell (the holes at a ray's entry into a Cheese), find what
+    the walk from the set's root finds, for rays from anywhere and for rays continuing from
+    hits with the hit's primitive as `start_prim`; and agree with the float64 reference."""
     from types import SimpleNamespace
 
     from mitsuba_csg.queries import trace_rays
@@ -397,8 +400,8 @@ def test_neighbour_passes_change_no_result(model, seed, optimize):
     direction = np.concatenate([d, turned])
     start = np.concatenate([np.full(len(o), 0xFFFFFFFF), first.prim[hit]]).astype(np.uint32)
     results = []
-    for neighbours in (True, False):
-        prepared = csg.prepare(model, optimize=optimize, traversal=TraversalOptions(neighbour_passes=neighbours))
+    for on in (True, False):
+        prepared = csg.prepare(model, optimize=optimize, traversal=TraversalOptions(**{mechanism: on}))
         b = prepared.tree.b
         results.append(trace_rays(prepared, csg.rays_to_device(origin, b), csg.rays_to_device(direction, b),
                                   start_prim=b.UInt32(start)))
@@ -432,6 +435,24 @@ def test_neighbour_passes_save_steps_in_connected_holes():
         t.append(hits.t.numpy())
     assert np.array_equal(t[0], t[1], equal_nan=True)
     assert steps[0] < 0.85 * steps[1]
+
+
+def test_cell_passes_save_steps_entering_a_cheese():
+    """The case cell grids are for: rays from outside a Cheese, where the holes' set is asked
+    only whether the point where a ray enters the block lies in a hole (its first pass walks
+    the tree of that point's cell, not down the whole set), take fewer steps, to the same hits."""
+    model = cheese(300, seed=2)
+    o, d = make_rays(7, 3000)
+    steps, t = [], []
+    for cells in (True, False):
+        prepared = csg.prepare(model, traversal=TraversalOptions(cell_passes=cells))
+        assert prepared.tree.has_grids == cells
+        hits = csg.trace(prepared, o, d)
+        entered = np.isfinite(hits.t) | (hits.steps > 2)
+        steps.append(hits.steps[entered].mean())
+        t.append(hits.t)
+    assert np.array_equal(t[0], t[1], equal_nan=True)
+    assert steps[0] < 0.85 * steps[1], steps
 
 
 def test_reorder_inside_a_symbolic_loop_is_ignored():

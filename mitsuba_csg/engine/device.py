@@ -15,7 +15,7 @@ import numpy as np
 from . import layout as K
 from .backend import Backend, owned
 from .lowering import FlatTree
-from .neighbours import NO_ENTRY, neighbour_trees
+from .neighbours import GRID_WORDS, NO_ENTRY, cell_grids, neighbour_trees
 from ..errors import ModelError, TreeTooDeepError
 
 MAX_STACK = 1024        # deepest tree the per-lane stacks are allocated for
@@ -32,11 +32,12 @@ class TraversalOptions:
     """
 
     __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through",
-                 "min_set_size", "compounds", "neighbour_passes")
+                 "min_set_size", "compounds", "neighbour_passes", "cell_passes")
 
     def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True,
                  near_first: bool = True, sets: bool = True, pass_through: bool = True, *,
-                 min_set_size: int = MIN_SET_SIZE, compounds: bool = True, neighbour_passes: bool = True):
+                 min_set_size: int = MIN_SET_SIZE, compounds: bool = True, neighbour_passes: bool = True,
+                 cell_passes: bool = True):
         self.restart_at_sibling = restart_at_sibling   # a loop restarts the looping child at its sibling's event
         self.skip_to_sibling = skip_to_sibling         # a fresh second child starts at the first child's event
                                                        # when that child fixes the node's state
@@ -53,13 +54,15 @@ class TraversalOptions:
                                                        # differences of convex leaves, not only leaves
         self.neighbour_passes = neighbour_passes       # a set walk inside at a member's exit searches
                                                        # that member's neighbours (engine.neighbours)
+        self.cell_passes = cell_passes                 # a set walk that asks only the state at a point
+                                                       # searches the members near its grid cell
 
     def __repr__(self) -> str:
         return (f"TraversalOptions(restart_at_sibling={self.restart_at_sibling}, "
                 f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search}, "
                 f"near_first={self.near_first}, sets={self.sets}, pass_through={self.pass_through}, "
                 f"min_set_size={self.min_set_size}, compounds={self.compounds}, "
-                f"neighbour_passes={self.neighbour_passes})")
+                f"neighbour_passes={self.neighbour_passes}, cell_passes={self.cell_passes})")
 
 
 @dataclass
@@ -77,7 +80,10 @@ class KernelTree:
     walk_entry: object      # UInt32 per node: where a set walk from it starts (its 4-wide root, or
                             # the node itself for a leaf); a compound member's literal record
     neighbour_entry: object  # UInt32 per node: where a set walk inside at this member's exit starts
-                             # (its neighbour tree in set_nodes, engine.neighbours; NO_ENTRY: the set's root)
+                             # (its neighbour tree in set_nodes, engine.neighbours; NO_ENTRY: the set's root);
+                             # at a set's root, its cell grid in set_grids (NO_ENTRY: none); after
+                             # the nodes, the entry of each grid cell's tree
+    set_grids: object        # UInt32, GRID_WORDS per cell grid of a set (engine.neighbours.cell_grids)
     compound_literals: object  # UInt32, COMPOUND_RECORD_WORDS per compound set member: its literals
                                # (layout.LITERAL_COMPLEMENT | leaf node id; NO_LITERAL for none),
                                # then their primitives
@@ -102,6 +108,7 @@ class KernelTree:
     has_groups: bool = False  # the kernel tests the GROUP flag only where there are group nodes
     has_compounds: bool = False  # the set walk evaluates compound members only where there are some
     has_neighbours: bool = False  # the set walk starts passes from neighbour trees only where there are some
+    has_grids: bool = False       # ... and from cell trees
     shape_kinds: frozenset = frozenset(K.SHAPE_CODES.values())   # the leaves' shape codes: the kernel
                                                                   # intersects only these
     options: TraversalOptions = field(default_factory=TraversalOptions)
@@ -195,7 +202,9 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     set_nodes, walk_entry, pending = _wide_sets(sets, kind, left, right, lower, upper, box, compound)
     owner = _set_owners(sets, compound, kind, left, right)
     neighbour_entry = np.full(len(kind), NO_ENTRY, np.uint32)
-    if options.sets and options.neighbour_passes:
+    grids = np.zeros((0, GRID_WORDS), np.uint32)
+    has_neighbours = False
+    if options.sets and (options.neighbour_passes or options.cell_passes):
         leaf = kind == K.LEAF
         convex = leaf & ~np.isin(flat.prim_shape[np.where(leaf, left, 0)], K.NON_CONVEX_SHAPES)
         # Only where rays cross a set's inside outside the solid (holes: a subtracted or
@@ -204,9 +213,17 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         holes = sets & _subtracted(kind, neg, left, right, root)
         in_hole = np.where(holes[np.maximum(owner, 0)], owner, -1)
         balls = _sphere_balls(flat, kind, left, centre, inv_scale)
-        trees, neighbour_entry = neighbour_trees(in_hole, box, balls, convex, len(set_nodes))
-        if np.any(neighbour_entry != NO_ENTRY):
-            set_nodes = np.concatenate([set_nodes, trees])
+        if options.neighbour_passes:
+            trees, neighbour_entry = neighbour_trees(in_hole, box, balls, convex, len(set_nodes))
+            has_neighbours = bool(np.any(neighbour_entry != NO_ENTRY))
+            if has_neighbours:
+                set_nodes = np.concatenate([set_nodes, trees])
+        if options.cell_passes:
+            cell_records, grids, cells, grid_roots = cell_grids(in_hole, box, balls, len(set_nodes), len(kind))
+            if len(grids):
+                set_nodes = np.concatenate([set_nodes, cell_records])
+                neighbour_entry[grid_roots] = np.arange(len(grids), dtype=np.uint32)
+                neighbour_entry = np.concatenate([neighbour_entry, cells])
     compound_literals = _compound_literals(compound, kind, left, right, walk_entry)
     prim_start = _prim_start(flat.num_prims, len(flat.node_kind), owner, kind, left)
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
@@ -239,6 +256,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         node_box=owned(b.Float, box.astype(np.float32).ravel()), node_wide=owned(b.Float, node_wide.ravel()),
         set_nodes=owned(b.Float, set_nodes.ravel()), walk_entry=owned(b.UInt32, walk_entry),
         neighbour_entry=owned(b.UInt32, neighbour_entry),
+        set_grids=owned(b.UInt32, grids.ravel() if len(grids) else np.zeros(GRID_WORDS, np.uint32)),
         compound_literals=owned(b.UInt32, compound_literals.ravel()),
         prim_start=owned(b.UInt32, prim_start.ravel()),
         walk_stack_size=max(stack_size_class(height), stack_size_class(pending + 1), WALK_STACK_MIN),
@@ -250,7 +268,8 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
         num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent,
         centre=tuple(float(c) for c in centre), inv_scale=float(inv_scale),
         has_meshes=bool(np.any(flat.prim_shape == K.MESH)), has_groups=bool(np.any(group)),
-        has_compounds=bool(np.any(compound)), has_neighbours=bool(np.any(neighbour_entry != NO_ENTRY)),
+        has_compounds=bool(np.any(compound)), has_neighbours=has_neighbours,
+        has_grids=bool(len(grids)),
         shape_kinds=frozenset(int(c) for c in np.unique(flat.prim_shape)), options=options)
     # Made now rather than at a first trace, which may be recorded by dr.freeze (queries.trace_rays).
     for dtype, value in ((b.UInt32, tree.root), (b.UInt32, tree.max_iterations), (b.UInt32, tree.num_prims),

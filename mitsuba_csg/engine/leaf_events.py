@@ -33,7 +33,7 @@ from . import layout as K
 from . import shapes
 from .device import Untraversed, gather_prim, node_record, set_node
 from .layout import ENTER, EXIT, FLIP_BIT, MAX_SLOPE, MISS, NO_LEAF
-from .neighbours import NEIGHBOUR_REACH, NO_ENTRY
+from .neighbours import GRID_WORDS, NEIGHBOUR_REACH, NO_ENTRY
 
 _NO_NODE = 0xFFFFFFFF
 
@@ -199,6 +199,32 @@ def _neighbour_pass(b, tree, member, starting, near_enough, node, local):
     return dr.select(go, entry, node), local | go
 
 
+def _cell_pass(b, tree, root, o, d, t_c, entry_bound, widest, near_enough, fresh, node, local, culled):
+    """(node, local, culled): a pass that asks only the union's state at ray(t_c) (outside, its
+    entries needed no further than the widest tie window) begins at the tree of that point's
+    grid cell (engine.neighbours.cell_grids), where the set has a grid, the cell is not crowded
+    and the lane's window is within the cells' reach. Members not in the cell may be entered
+    past the entry bound before an entry the pass finds there, so such an entry is not final:
+    the pass counts the bound as culled."""
+    width = dr.width(t_c)
+    grid = dr.gather(b.UInt32, tree.neighbour_entry, root, fresh)
+    p = o + t_c * d
+    go = fresh & near_enough & (grid != NO_ENTRY) & (entry_bound <= t_c + widest) & \
+        dr.isfinite(p.x) & dr.isfinite(p.y) & dr.isfinite(p.z)
+    words = dr.gather(b.module.ArrayXu, tree.set_grids, grid, go, shape=(GRID_WORDS, width))
+    inv_edge = dr.reinterpret_array(b.Float, words[3])
+    cell = b.UInt32(words[7])
+    stride = b.UInt32(1)
+    for axis in range(3):
+        lower = dr.reinterpret_array(b.Float, words[axis])
+        index = dr.clip(dr.floor((p[axis] - lower) * inv_edge), 0.0, b.Float(words[4 + axis] - 1))
+        cell += b.UInt32(index) * stride
+        stride *= words[4 + axis]
+    entry = dr.gather(b.UInt32, tree.neighbour_entry, cell, go)
+    go &= entry != NO_ENTRY
+    return dr.select(go, entry, node), local | go, dr.select(go, dr.minimum(culled, entry_bound), culled)
+
+
 @dr.syntax
 def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tmax, tie, active,
                start_member=None):
@@ -247,6 +273,7 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
     # A pass inside at a member's exit may search that member's neighbours only (`local`,
     # engine.neighbours), where the ray's widest tie window is within what their trees cover.
     neighbours = tree.has_neighbours and tree.options.neighbour_passes
+    cells = tree.has_grids and tree.options.cell_passes
     local = dr.zeros(b.Bool, width)
     near_enough = widest <= NEIGHBOUR_REACH
     if dr.hint(start_member is not None, mode="scalar"):
@@ -269,6 +296,9 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
             iterations += dr.select(hinted, 1, 0)
             if dr.hint(neighbours, mode="scalar"):
                 node, local = _neighbour_pass(b, tree, start_member, held, near_enough, node, local)
+    if dr.hint(cells, mode="scalar"):
+        node, local, culled = _cell_pass(b, tree, root, o, d, t_c, entry_bound, widest, near_enough,
+                                         b.Bool(active) & ~inside & ~done, node, local, culled)
 
     # Loop state is what the walk changes: the rays and bounds it only reads are left out
     # (Dr.Jit would otherwise record the body twice, once to find them unchanged).
@@ -356,8 +386,8 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
             # Another member may take over at the farthest exit: one entered before it (or may
             # have been, in a box not opened), or a second containing one that may re-enter.
             take_over = (en_t <= ex_t + window) | ((containing > 1) & non_convex_inside) | (culled <= ex_t + widest)
-            if dr.hint(neighbours, mode="scalar"):
-                take_over |= local        # a pass over neighbours saw only those of the member it started from
+            if dr.hint(neighbours or cells, mode="scalar"):
+                take_over |= local        # a pass over neighbours (or a cell's members) saw only those
             # Past the exit bound the state is all that matters: inside up to the bound.
             unsure = found_inside & take_over & (ex_t >= exit_bound) & (exit_bound < tmax)
             chain = found_inside & ~unsure & dr.isfinite(ex_t) & take_over
@@ -384,8 +414,9 @@ def next_event(b, tree, root, o, d, inv_d, t_start, entry_bound, exit_bound, tma
             t_c = dr.select(restart, ex_t, t_c)
             from_t = dr.select(restart, ex_t, from_t)
             node = dr.select(restart, start_node, node)
-            if dr.hint(neighbours, mode="scalar"):
+            if dr.hint(neighbours or cells, mode="scalar"):
                 local &= ~restart
+            if dr.hint(neighbours, mode="scalar"):
                 node, local = _neighbour_pass(b, tree, ex_leaf, restart, near_enough, node, local)
             en_t, en_leaf, en_info = dr.select(restart, dr.inf, en_t), dr.select(restart, NO_LEAF, en_leaf), \
                 dr.select(restart, MISS, en_info)

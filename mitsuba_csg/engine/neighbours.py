@@ -19,6 +19,13 @@ wider one walks from the set's root as before. Neighbours are members whose boxe
 box widened by the reach and, where M or they are spheres, whose bounding balls come that
 close to M's ball or box (on a Cheese of 1000 holes, about half the neighbours the boxes
 alone give).
+
+A pass that asks only the union's state at a point (the first pass of a walk from outside,
+searched from its sibling's event: the Cheese's holes at the ray's entry into the block) has
+the same need with no member to start from: which members hold the point, or are entered
+within the tie window after it. Such a set also has a uniform grid of cells (`cell_grids`),
+each with a 4-wide tree over the members that come within the reach of the cell, and the pass
+walks the tree of the point's cell instead of descending from the set's root.
 """
 from __future__ import annotations
 
@@ -36,6 +43,14 @@ NEIGHBOUR_REACH = 1.0 / 64.0
 MAX_NEIGHBOURS = 64
 
 NO_ENTRY = 0xFFFFFFFF     # no neighbour tree: walk from the set's root
+
+# A set's cells are about this fraction of its members' median box size across: smaller
+# cells hold fewer members each, and cost more memory.
+CELL_PER_MEMBER = 0.5
+MAX_CELLS = 1 << 18       # cells of one set's grid ...
+CELLS_PER_MEMBER = 8      # ... and per member (a set of small members spread far: a city's windows)
+GRID_WORDS = 8            # per grid: lower corner xyz and 1 / cell edge (float bits), cells per axis xyz,
+                          # the index of its first cell's entry
 
 
 def neighbour_trees(owner, box, balls, convex, first_record):
@@ -175,3 +190,71 @@ def _trees(owner, near, lower, upper, first_record):
     roots[group] = refs
     stacked = np.concatenate(records) if records else np.zeros((0, K.SET_NODE_FLOATS), np.float32)
     return stacked, roots
+
+
+def cell_grids(owner, box, balls, first_record, first_cell):
+    """(records, grids, cells, grid_roots): for each set of `owner` (as in `neighbour_trees`),
+    a uniform grid over its members' boxes widened by NEIGHBOUR_REACH, each cell with a 4-wide
+    tree over the members whose boxes (and, for spheres, balls) come within the reach of the
+    cell. `records`: the trees (numbered from `first_record`; the first has no children, the
+    entry of an empty cell); `grids`: GRID_WORDS uint32 words per grid; `cells`: the entry of
+    each cell, numbered from `first_cell` (a record, a lone member's node id, or NO_ENTRY where
+    more than MAX_NEIGHBOURS members crowd the cell: its point walks from the set's root);
+    `grid_roots`: the set root of each grid."""
+    empty = np.full((1, K.SET_NODE_FLOATS), np.nan, np.float32)
+    empty[0, :4] = np.full(4, K.NO_LEAF, np.uint32).view(np.float32)
+    lower, upper = box[:, 0:3], box[:, 4:7]
+    grids, roots, cell_of, member_of, crowded, count = [], [], [], [], [], 0
+    for members in _members_by_set(owner):
+        lo, hi = lower[members], upper[members]
+        usable = np.all(np.isfinite(lo) & np.isfinite(hi), axis=1)
+        members, lo, hi = members[usable], lo[usable], hi[usable]
+        if len(members) < 2:
+            continue
+        g_lo = lo.min(axis=0) - NEIGHBOUR_REACH
+        span = hi.max(axis=0) + NEIGHBOUR_REACH - g_lo
+        edge = max(CELL_PER_MEMBER * float(np.median((hi - lo).max(axis=1))), float(span.max()) / 1024.0, 1e-6)
+        while True:
+            res = np.maximum(np.ceil(span / edge), 1).astype(np.int64)
+            if res.prod() <= min(MAX_CELLS, CELLS_PER_MEMBER * len(members)):
+                break
+            edge *= 1.25
+        first = np.clip(np.floor((lo - NEIGHBOUR_REACH - g_lo) / edge), 0, res - 1).astype(np.int64)
+        last = np.clip(np.floor((hi + NEIGHBOUR_REACH - g_lo) / edge), 0, res - 1).astype(np.int64)
+        sizes = last - first + 1
+        per = sizes.prod(axis=1)
+        i = np.repeat(np.arange(len(members)), per)
+        k = np.arange(len(i)) - np.repeat(np.cumsum(per) - per, per)
+        cx = first[i, 0] + k % sizes[i, 0]
+        cy = first[i, 1] + (k // sizes[i, 0]) % sizes[i, 1]
+        cz = first[i, 2] + k // (sizes[i, 0] * sizes[i, 1])
+        cell = np.stack([cx, cy, cz], axis=1)
+        # A sphere: its ball within the reach of the cell.
+        ball = balls[members[i]]
+        c_lo = g_lo + cell * edge
+        gap = np.linalg.norm(np.clip(ball[:, :3], c_lo, c_lo + edge) - ball[:, :3], axis=1)
+        with np.errstate(invalid="ignore"):
+            keep = ~np.isfinite(ball[:, 3]) | (gap <= ball[:, 3] + NEIGHBOUR_REACH)
+        flat = count + cx + res[0] * (cy + res[1] * cz)
+        flat, near = flat[keep], members[i[keep]]
+        full = np.bincount(flat - count, minlength=int(res.prod())) > MAX_NEIGHBOURS
+        crowded.append(count + np.flatnonzero(full))
+        listed = ~full[flat - count]
+        cell_of.append(flat[listed])
+        member_of.append(near[listed])
+        words = np.zeros(GRID_WORDS, np.uint32)
+        words[0:4] = np.array([*g_lo, 1.0 / edge], np.float32).view(np.uint32)
+        words[4:7] = res
+        words[7] = first_cell + count
+        grids.append(words)
+        roots.append(owner[members[0]])
+        count += int(res.prod())
+    if not grids:
+        return np.zeros((0, K.SET_NODE_FLOATS), np.float32), np.zeros((0, GRID_WORDS), np.uint32), \
+            np.zeros(0, np.uint32), np.zeros(0, np.int64)
+    cells = np.full(count, K.SET_NODE_TAG | first_record, np.uint32)     # empty cells: the empty record
+    cells[np.concatenate(crowded)] = NO_ENTRY
+    of, near = np.concatenate(cell_of), np.concatenate(member_of)
+    records, tree_roots = _trees(of, near, lower, upper, first_record + 1)
+    cells[np.unique(of)] = tree_roots
+    return np.concatenate([empty, records]), np.stack(grids), cells, np.asarray(roots, np.int64)
