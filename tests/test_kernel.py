@@ -40,6 +40,7 @@ TRAVERSALS = {
     "no_compounds": TraversalOptions(compounds=False),   # set members are leaves only
     "no_neighbours": TraversalOptions(neighbour_passes=False),   # passes from inside start at the set's root
     "no_cells": TraversalOptions(cell_passes=False),    # passes asking a point's state start at the set's root
+    "small_grids": TraversalOptions(min_grid_size=2),  # hole sets of any size get cell grids
     "no_pass_through": TraversalOptions(pass_through=False),
     "none": TraversalOptions(*[False] * 6),
 }
@@ -401,7 +402,8 @@ def test_local_passes_change_no_result(mechanism, model, seed, optimize):
     start = np.concatenate([np.full(len(o), 0xFFFFFFFF), first.prim[hit]]).astype(np.uint32)
     results = []
     for on in (True, False):
-        prepared = csg.prepare(model, optimize=optimize, traversal=TraversalOptions(**{mechanism: on}))
+        # Grids for sets of any size, not only those of MIN_GRID_SIZE members or more.
+        prepared = csg.prepare(model, optimize=optimize, traversal=TraversalOptions(**{mechanism: on}, min_grid_size=2))
         b = prepared.tree.b
         results.append(trace_rays(prepared, csg.rays_to_device(origin, b), csg.rays_to_device(direction, b),
                                   start_prim=b.UInt32(start)))

@@ -21,6 +21,10 @@ from ..errors import ModelError, TreeTooDeepError
 MAX_STACK = 1024        # deepest tree the per-lane stacks are allocated for
 MAX_NODES = 1 << 29     # a stack frame holds a node id above 3 bits of its own (engine.automaton)
 MIN_SET_SIZE = 4
+# Fewest members of a hole set given a cell grid: a smaller set's 4-wide tree is two levels
+# deep, as shallow as a cell's, and City-343k's 34,300 sets of 8 windows took 620 MB of cell
+# trees and 12 s to build.
+MIN_GRID_SIZE = 64
 
 
 class TraversalOptions:
@@ -32,12 +36,12 @@ class TraversalOptions:
     """
 
     __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through",
-                 "min_set_size", "compounds", "neighbour_passes", "cell_passes")
+                 "min_set_size", "compounds", "neighbour_passes", "cell_passes", "min_grid_size")
 
     def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True,
                  near_first: bool = True, sets: bool = True, pass_through: bool = True, *,
                  min_set_size: int = MIN_SET_SIZE, compounds: bool = True, neighbour_passes: bool = True,
-                 cell_passes: bool = True):
+                 cell_passes: bool = True, min_grid_size: int = MIN_GRID_SIZE):
         self.restart_at_sibling = restart_at_sibling   # a loop restarts the looping child at its sibling's event
         self.skip_to_sibling = skip_to_sibling         # a fresh second child starts at the first child's event
                                                        # when that child fixes the node's state
@@ -56,13 +60,15 @@ class TraversalOptions:
                                                        # that member's neighbours (engine.neighbours)
         self.cell_passes = cell_passes                 # a set walk that asks only the state at a point
                                                        # searches the members near its grid cell
+        self.min_grid_size = min_grid_size             # fewest members of a set given a grid
 
     def __repr__(self) -> str:
         return (f"TraversalOptions(restart_at_sibling={self.restart_at_sibling}, "
                 f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search}, "
                 f"near_first={self.near_first}, sets={self.sets}, pass_through={self.pass_through}, "
                 f"min_set_size={self.min_set_size}, compounds={self.compounds}, "
-                f"neighbour_passes={self.neighbour_passes}, cell_passes={self.cell_passes})")
+                f"neighbour_passes={self.neighbour_passes}, cell_passes={self.cell_passes}, "
+                f"min_grid_size={self.min_grid_size})")
 
 
 @dataclass
@@ -219,7 +225,8 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
             if has_neighbours:
                 set_nodes = np.concatenate([set_nodes, trees])
         if options.cell_passes:
-            cell_records, grids, cells, grid_roots = cell_grids(in_hole, box, balls, len(set_nodes), len(kind))
+            cell_records, grids, cells, grid_roots = cell_grids(in_hole, box, balls, len(set_nodes), len(kind),
+                                                                options.min_grid_size)
             if len(grids):
                 set_nodes = np.concatenate([set_nodes, cell_records])
                 neighbour_entry[grid_roots] = np.arange(len(grids), dtype=np.uint32)

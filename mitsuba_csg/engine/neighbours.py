@@ -192,7 +192,7 @@ def _trees(owner, near, lower, upper, first_record):
     return stacked, roots
 
 
-def cell_grids(owner, box, balls, first_record, first_cell):
+def cell_grids(owner, box, balls, first_record, first_cell, min_members=2):
     """(records, grids, cells, grid_roots): for each set of `owner` (as in `neighbour_trees`),
     a uniform grid over its members' boxes widened by NEIGHBOUR_REACH, each cell with a 4-wide
     tree over the members whose boxes (and, for spheres, balls) come within the reach of the
@@ -205,11 +205,13 @@ def cell_grids(owner, box, balls, first_record, first_cell):
     empty[0, :4] = np.full(4, K.NO_LEAF, np.uint32).view(np.float32)
     lower, upper = box[:, 0:3], box[:, 4:7]
     grids, roots, cell_of, member_of, crowded, count = [], [], [], [], [], 0
+    sets, size = np.unique(owner[owner >= 0], return_counts=True)
+    owner = np.where(np.isin(owner, sets[size >= min_members]), owner, -1)    # the small sets skipped at once
     for members in _members_by_set(owner):
         lo, hi = lower[members], upper[members]
         usable = np.all(np.isfinite(lo) & np.isfinite(hi), axis=1)
         members, lo, hi = members[usable], lo[usable], hi[usable]
-        if len(members) < 2:
+        if len(members) < max(min_members, 2):
             continue
         g_lo = lo.min(axis=0) - NEIGHBOUR_REACH
         span = hi.max(axis=0) + NEIGHBOUR_REACH - g_lo
