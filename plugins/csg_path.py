@@ -16,6 +16,10 @@ from .csg_common import SceneCSG, camera_ray_valid, read_depths, read_hide_emitt
 # Depth after which the paths still going on are gathered into fewer lanes (`_may_compact`):
 # on a Cheese of 1000 holes, about one path in five is left by then.
 COMPACT_DEPTH = 2
+# Widest wavefront (samples per pass) whose paths are gathered: the gathered state takes about
+# 150 bytes a lane, 0.6 GB here, where the megakernel keeps it in registers (a test's 24x18
+# image at 65,536 samples per pixel in one pass, 28 million lanes, ran out of 24 GB).
+MAX_COMPACT_LANES = 1 << 22
 
 
 class Paths:
@@ -43,12 +47,14 @@ class Paths:
                      dr.zeros(mi.Interaction3f), mi.Float(1.0), mi.Bool(True), mi.UInt32(0xFFFFFFFF))
 
 
-def _may_compact(max_depth: int) -> bool:
+def _may_compact(max_depth: int, lanes: int) -> bool:
     """Whether the paths that go on after COMPACT_DEPTH may be gathered into fewer lanes: on
     a JIT variant rendering kernel by kernel (compaction evaluates the wavefront and reads its
-    size back), not recorded into a symbolic loop or a frozen function."""
-    return max_depth > COMPACT_DEPTH and dr.is_jit_v(mi.Float) and not any(dr.flag(flag) for flag in (
-        dr.JitFlag.SymbolicScope, dr.JitFlag.FreezingScope, dr.JitFlag.ForbidSynchronization))
+    size back), not recorded into a symbolic loop or a frozen function, for a wavefront of at
+    most MAX_COMPACT_LANES lanes."""
+    return max_depth > COMPACT_DEPTH and lanes <= MAX_COMPACT_LANES and dr.is_jit_v(mi.Float) and not any(
+        dr.flag(flag) for flag in (dr.JitFlag.SymbolicScope, dr.JitFlag.FreezingScope,
+                                   dr.JitFlag.ForbidSynchronization))
 
 
 def _coherent_lanes(csg: SceneCSG, paths: Paths):
@@ -96,7 +102,9 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
     what its slowest lane costs, active or not, and a CSG traversal is long next to an
     Embree query. Their random numbers then differ from those `path` would draw, not their
     distribution. Recorded into a frozen function or a symbolic operation, where nothing can
-    be evaluated, all paths are traced in one loop, as `path` traces them.
+    be evaluated, and for passes of more than 2^22 samples (whose gathered state would take
+    gigabytes; `samples_per_pass` splits a render into smaller passes), all paths are traced
+    in one loop, as `path` traces them.
 
     .. code-block:: python
 
@@ -119,7 +127,7 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
         integrator_guard.check(mi, self, scene)
         csg = SceneCSG(scene)
         paths = Paths.begin(mi.Ray3f(dr.detach(ray)), active)
-        if not (csg.csg and _may_compact(self.max_depth)):
+        if not (csg.csg and _may_compact(self.max_depth, dr.width(ray.d))):
             paths = self._trace_paths(scene, sampler, csg, paths, self.max_depth)
             return paths.L, camera_ray_valid(scene, self.hide_emitters, paths.depth), []
         paths = self._trace_paths(scene, sampler, csg, paths, COMPACT_DEPTH)
@@ -136,6 +144,7 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
         sampler = sampler.clone()
         sampler.seed(seed, dr.width(lanes))
         rest = dr.gather(Paths, paths, lanes)
+        del paths                    # the whole wavefront's state, no longer needed
         rest.L = dr.zeros(mi.Spectrum, dr.width(lanes))
         rest = self._trace_paths(scene, sampler, csg, rest, self.max_depth)
         dr.scatter_add(L, rest.L, lanes)
