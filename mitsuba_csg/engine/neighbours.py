@@ -72,15 +72,20 @@ def neighbour_trees(owner, box, balls, convex, first_record):
     near = np.concatenate([p[1] for p in pairs]) if pairs else np.zeros(0, np.int64)
     keep = ~((of == near) & convex[of])
     of, near = of[keep], near[keep]
-    # Record 0 has no children: the entry of a member with no neighbours (a pass that opens nothing).
-    empty = np.full((1, K.SET_NODE_FLOATS), np.nan, np.float32)
-    empty[0, :4] = np.full(4, K.NO_LEAF, np.uint32).view(np.float32)
     with_list = np.unique(of)
     alone = np.setdiff1d(np.flatnonzero(owner >= 0), np.concatenate([with_list, _crowded(pairs)]))
+    # Record 0 has no children: the entry of a member with no neighbours (a pass that opens nothing).
     entry[alone] = K.SET_NODE_TAG | first_record
     records, roots = _trees(of, near, lower, upper, first_record + 1)
     entry[with_list] = roots
-    return np.concatenate([empty, records]), entry
+    return np.concatenate([_empty_record(), records]), entry
+
+
+def _empty_record():
+    """A 4-wide record with no children: a pass that starts there opens nothing."""
+    empty = np.full((1, K.SET_NODE_FLOATS), np.nan, np.float32)
+    empty[0, :4] = np.full(4, K.NO_LEAF, np.uint32).view(np.float32)
+    return empty
 
 
 def _members_by_set(owner):
@@ -201,8 +206,6 @@ def cell_grids(owner, box, balls, first_record, first_cell, min_members=2):
     each cell, numbered from `first_cell` (a record, a lone member's node id, or NO_ENTRY where
     more than MAX_NEIGHBOURS members crowd the cell: its point walks from the set's root);
     `grid_roots`: the set root of each grid."""
-    empty = np.full((1, K.SET_NODE_FLOATS), np.nan, np.float32)
-    empty[0, :4] = np.full(4, K.NO_LEAF, np.uint32).view(np.float32)
     lower, upper = box[:, 0:3], box[:, 4:7]
     grids, roots, cell_of, member_of, crowded, count = [], [], [], [], [], 0
     sets, size = np.unique(owner[owner >= 0], return_counts=True)
@@ -259,4 +262,4 @@ def cell_grids(owner, box, balls, first_record, first_cell, min_members=2):
     of, near = np.concatenate(cell_of), np.concatenate(member_of)
     records, tree_roots = _trees(of, near, lower, upper, first_record + 1)
     cells[np.unique(of)] = tree_roots
-    return np.concatenate([empty, records]), np.stack(grids), cells, np.asarray(roots, np.int64)
+    return np.concatenate([_empty_record(), records]), np.stack(grids), cells, np.asarray(roots, np.int64)
