@@ -37,7 +37,7 @@ def main(argv=None):
     parser.add_argument("--name", default="traversal_mechanisms")
     args = common.parse_args(parser, argv)
     import mitsuba_csg as csg
-    from mitsuba_csg.engine.device import TraversalOptions
+    from mitsuba_csg.engine.options import TraversalOptions
     from trace_throughput import measure, scenes_with_rays
     rows = []
     for scene, model, o, d, width, height in scenes_with_rays(args.scenes.split(","), args.size):

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 import mitsuba_csg as csg
 import reference as ref
 from agreement import compare
-from mitsuba_csg.engine.device import TraversalOptions
+from mitsuba_csg.engine.options import TraversalOptions
 from mitsuba_csg.engine.grouping import group_trees
 from mitsuba_csg.scenes import cheese
 from strategies import make_points, make_rays, models, stacked_columns, unions_of_compounds, unions_of_leaves
@@ -715,7 +715,7 @@ def test_box_test_rejects_empty_boxes():
     twice). Every ray, from every direction, must be rejected."""
     import drjit as dr
 
-    from mitsuba_csg.engine import automaton
+    from mitsuba_csg.engine import leaf_events
 
     lone = csg.prepare(csg.Sphere(1.0))
     disjoint = csg.prepare((csg.Box(1.0) & csg.Box(1.0).translate((3, 0, 0))) | csg.Sphere(0.5).translate((9, 0, 0)),
@@ -728,8 +728,8 @@ def test_box_test_rejects_empty_boxes():
         b = prepared.tree.b
         O, D = csg.rays_to_device(o, b), csg.rays_to_device(d, b)
         inv_d = b.Array3f([1.0 / D[i] for i in range(3)])
-        hit = automaton._box_hit(b, prepared.tree, dr.full(b.UInt32, node, 256), O, inv_d,
-                                 b.Float(-1e30), b.Float(1e30), True)
+        ray = b.SceneRay(o=O, inv_d=inv_d, tmax=b.Float(1e30))
+        hit = leaf_events.box_meets(prepared.tree, ray, dr.full(b.UInt32, node, 256), b.Float(-1e30))
         assert not np.any(hit.numpy())
     h = csg.trace(lone, o, d)
     compare(csg.Sphere(1.0), h, o, d)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 import mitsuba_csg as csg
 from agreement import compare
-from mitsuba_csg.engine.device import TraversalOptions
+from mitsuba_csg.engine.options import TraversalOptions
 from strategies import make_rays, meshes, models_with_meshes
 
 pytestmark = pytest.mark.usefixtures("jit_variant")

@@ -18,7 +18,7 @@ hits (t, leaf, info) and the GoTo/Classify/Return state. Events of the two child
 than their tie window (`_tie_window`, docs/accuracy.md) are one event: coincident faces.
 The traversal mechanisms (restart and skip to the sibling's event, bounded search with
 provisional hits, near-first order) are described in
-`docs/algorithm.md` and switched by `engine.device.TraversalOptions`. A frame is pushed,
+`docs/algorithm.md` and switched by `engine.options.TraversalOptions`. A frame is pushed,
 with the node's `t_bound` on a third stack, when GoTo descends into an operation child, and
 popped when that child's subtree returns its hit (which then sits in both hit registers):
 
@@ -43,16 +43,16 @@ A pop at stack depth 0 ends the lane (DONE) with the root's hit in the left regi
 """
 from __future__ import annotations
 
+import functools
+
 import drjit as dr
 
 from . import layout as K
 from .device import KernelTree, Untraversed, node_record, node_with_child_boxes, opaque, scene_rays
-from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, INTERSECTION, LEAF, LOOP_CLOSER, MAX_SLOPE, MISS, NO_LEAF,
+from .layout import (DIFFERENCE, ENTER, EXIT, FLIP_BIT, INTERSECTION, LOOP_CLOSER, MAX_SLOPE, MISS, NO_INDEX,
                      RET_CLOSER, RET_L, RET_L_ELSE_LOOP_R, RET_R, RET_R_ELSE_LOOP_L, UNION)
-from .leaf_events import box_span as _box_span
-from .leaf_events import complement_class as _complement_class
-from .leaf_events import leaf_hit, next_event
-from .leaf_events import tie_window as _tie_window
+from .leaf_events import box_meets, complement_class, leaf_hit, no_hit, tie_window
+from .set_walk import next_event
 from .shapes import box_entry, inverse_direction
 
 # Events of different primitives closer than a tie window are one event for the state
@@ -72,24 +72,52 @@ SWAPPED_FRAME = 4
 FRAME_NODE_SHIFT = 3     # above them, the node the frame returns to (not always the child's parent;
                          # device.MAX_NODES keeps node ids within the word)
 
-def _box_hit(b, tree, node, o, inv_d, t_start, tmax, active):
-    near, far = _box_span(b, tree, node, o, inv_d, active)
-    return (near <= far) & (far >= t_start) & (near <= tmax)
+
+@functools.cache
+def _goto_choice_type(module):
+    class GotoChoice:
+        """What GoTo decided at a node: which child is searched next, on which interval, and
+        whether it is descended into or its hit is known in this step."""
+        DRJIT_STRUCT = {
+            "flags": module.UInt32,         # the node's flags word (its kind and group bit for Classify)
+            "going": module.Bool,           # the lane is in a GoTo state and the node is not vacant
+            "go_right": module.Bool,        # register R receives the child's hit
+            "fresh_left": module.Bool,      # a fresh search of the node's first child
+            "child": module.UInt32,         # the child searched
+            "child_bits": module.UInt32,    # its CHILD_* bits
+            "child_is_leaf": module.Bool,   # a leaf or a set: its next event is found in this step
+            "child_bound": module.Float,    # the child's events past this do not matter
+            "entry_bound": module.Float,    # ... its entries past this (a set walk's bounds)
+            "exit_bound": module.Float,     # ... its exits past this
+            "single": module.Bool,          # the node is its child in register L (pass-through)
+            "vacant": module.Bool,          # the node misses: no child needs searching
+            "in_box": module.Bool,          # the child's box lies (partly) within [t_start, child_bound]
+            "provisional": module.Bool,     # the box lies past a bound short of tmax: a provisional hit
+            "descend": module.Bool,         # an operation child in reach: descended into
+        }
+
+        def __init__(self, **fields):
+            for name in self.DRJIT_STRUCT:
+                setattr(self, name, fields.get(name))
+    return GotoChoice
 
 
-def _tie_tolerance(b, tree, o, d):
+def _tie_tolerance(tree, o, d):
     """Per ray, the t distance below which events of different primitives are one event.
 
     Hits lie in the root box, so |o + t d| <= extent and every float32 rounding in the maps
     to the primitives' frames is relative to at most extent + |o| (docs/accuracy.md).
     """
-    magnitude = opaque(tree, b.Float, tree.extent) + dr.max(dr.abs(o))
+    magnitude = opaque(tree, tree.b.Float, tree.extent) + dr.max(dr.abs(o))
     return TIE_TOLERANCE * magnitude / dr.norm(d)
 
 
-def _goto(b, tree, o, d, inv_d, tie, tmax, n, node, state, t_start, t_bound, swapped, t_l, info_l):
-    """GoTo's choice at `node` in `state`: which child is searched next, on which interval,
-    and whether it is descended into or its hit is known in this step."""
+def _goto(tree, ray, node, state, t_start, t_bound, swapped, hit_l):
+    """(GotoChoice, t_start, swapped): GoTo's choice at `node` in `state`, where the search
+    starts (later than t_start where skip_to_sibling allows) and which child register L holds."""
+    b = tree.b
+    o, d, inv_d, tie = ray.o, ray.d, ray.inv_d, ray.tie
+    n = dr.width(node)
     # The node's record serves GoTo (children) and Classify (kind).
     flags, node_left, node_right, box_l, box_r = node_with_child_boxes(b, tree, node)
     kind = K.flags_kind(flags)
@@ -101,20 +129,18 @@ def _goto(b, tree, o, d, inv_d, tie, tmax, n, node, state, t_start, t_bound, swa
     # otherwise its events after the first child's event cannot change what the node
     # returns next (bounded_search: search it only up to there).
     second = state == GOTO_R_FRESH
-    cls_first = K.info_class(info_l)
+    cls_first = K.info_class(hit_l.info)
     fixes = dr.select(kind == UNION, cls_first == EXIT, cls_first != EXIT)
-    group = None
     if tree.has_groups:
         # A group's children are separate solids: none fixes what the other shows.
-        group = K.flags_group(flags)
-        fixes &= ~group
+        fixes &= ~K.flags_group(flags)
     if tree.options.skip_to_sibling:
-        t_start = dr.select(second & fixes, dr.maximum(t_start, t_l), t_start)
+        t_start = dr.select(second & fixes, dr.maximum(t_start, hit_l.t), t_start)
     child_bound = t_bound
     if tree.options.bounded_search:
         # Up to the first child's event and its tie window, so that a coincident event of
         # the second child is seen as the tie it is.
-        reach = t_l + _tie_window(b, tie, K.info_slope(info_l))
+        reach = hit_l.t + tie_window(b, tie, K.info_slope(hit_l.info))
         child_bound = dr.select(second & ~fixes, dr.minimum(t_bound, reach), t_bound)
     entry_bound = exit_bound = child_bound
     if tree.options.skip_to_sibling and tree.options.bounded_search:
@@ -122,8 +148,8 @@ def _goto(b, tree, o, d, inv_d, tie, tmax, n, node, state, t_start, t_bound, swa
         # then, the second child decides what the node does there by its state alone; its
         # next event matters only where that state keeps the node's state (union and
         # difference: the second child inside, so its exit; intersection: outside, so its
-        # entry). The other kind of event is searched only for ties (engine.leaf_events).
-        near_tie = t_l + _tie_window(b, tie, MAX_SLOPE)
+        # entry). The other kind of event is searched only for ties (engine.set_walk).
+        near_tie = hit_l.t + tie_window(b, tie, MAX_SLOPE)
         state_only = second & fixes
         wants_entry = kind == INTERSECTION
         entry_bound = dr.select(state_only & ~wants_entry, dr.minimum(child_bound, near_tie), child_bound)
@@ -166,7 +192,7 @@ def _goto(b, tree, o, d, inv_d, tie, tmax, n, node, state, t_start, t_bound, swa
     child = dr.select(use_r, node_right, node_left)
     near, far = dr.select(use_r, near_r, near_l), dr.select(use_r, far_r, far_l)
     child_bits = dr.select(use_r, bits_r, bits_l)
-    # A set (a union of leaves) is searched as one node, like a leaf (engine.leaf_events).
+    # A set (a union of leaves) is searched as one node, like a leaf (engine.set_walk).
     child_is_leaf = (child_bits & K.CHILD_LEAF) != 0
     if tree.options.sets:
         child_is_leaf |= (child_bits & K.CHILD_SET) != 0
@@ -175,26 +201,32 @@ def _goto(b, tree, o, d, inv_d, tie, tmax, n, node, state, t_start, t_bound, swa
     in_box = reaches & (near <= child_bound)
     # Past a bound short of tmax, the subtree's state is known (outside if bounded, inside
     # if co-bounded) but not its next event: a provisional hit at the bound.
-    provisional = reaches & ~in_box & (child_bound < tmax)
+    provisional = reaches & ~in_box & (child_bound < ray.tmax)
     # An operation child in reach is descended into.
     descend = in_box & ~child_is_leaf
-    return (kind, group, going, go_right, fresh_left, t_start, swapped, child, child_bits, child_is_leaf,
-            child_bound, entry_bound, exit_bound, single, vacant, in_box, provisional, descend)
+    choice = _goto_choice_type(b.module)(
+        flags=flags, going=going, go_right=go_right, fresh_left=fresh_left, child=child, child_bits=child_bits,
+        child_is_leaf=child_is_leaf, child_bound=child_bound, entry_bound=entry_bound, exit_bound=exit_bound,
+        single=single, vacant=vacant, in_box=in_box, provisional=provisional, descend=descend)
+    return choice, t_start, swapped
 
 
-def _classify(b, tree, kind, group, tie, tmax, t_bound, state, t_start, t_l, leaf_l, info_l, t_r, leaf_r, info_r):
-    """Classify: apply the state table of the node (of `kind`) to its children's hits in
-    registers L and R. Returns the registers, `state` (RETURN, a loop's GoTo, or unchanged)
-    and `t_start` (where a loop restarts)."""
+def _classify(tree, ray, flags, state, t_start, t_bound, hit_l, hit_r):
+    """Classify: apply the state table of the node (of `flags`) to its children's hits in
+    registers L and R. Returns `state` (RETURN, a loop's GoTo, or unchanged), `t_start`
+    (where a loop restarts) and the registers L and R."""
+    b = tree.b
+    t_l, t_r = hit_l.t, hit_r.t
+    kind = K.flags_kind(flags)
     classify = state == CLASSIFY
     is_diff = kind == DIFFERENCE
-    cls_l = K.info_class(info_l)
-    cls_r = K.info_class(info_r)
+    cls_l = K.info_class(hit_l.info)
+    cls_r = K.info_class(hit_r.info)
     # L - R = L & ~R: complement R's class (a miss of R is an exit at infinity)
-    cls_r = dr.select(is_diff, _complement_class(cls_r), cls_r)
+    cls_r = dr.select(is_diff, complement_class(cls_r), cls_r)
     table_op = dr.select(kind == UNION, 0, 1)
     if tree.has_groups:
-        table_op = dr.select(group, K.GROUP_ROW, table_op)
+        table_op = dr.select(K.flags_group(flags), K.GROUP_ROW, table_op)
     row = dr.select(table_op == 0, K.TABLE_WORDS[0], dr.select(table_op == 1, K.TABLE_WORDS[1], K.TABLE_WORDS[2]))
     action = (row >> (3 * (cls_l * 3 + cls_r))) & 7
     # Ties: a return needs its hit closer by more than the tie window, except
@@ -204,7 +236,7 @@ def _classify(b, tree, kind, group, tie, tmax, t_bound, state, t_start, t_l, lea
     l_closer = t_l <= t_r
     # The narrower of the two windows: a coincident pair meets the ray at one slope, and
     # a steep event next to a grazing one is not widened by it.
-    window = _tie_window(b, tie, dr.minimum(K.info_slope(info_l), K.info_slope(info_r)))
+    window = tie_window(b, ray.tie, dr.minimum(K.info_slope(hit_l.info), K.info_slope(hit_r.info)))
     apart = dr.abs(t_l - t_r) > window        # false for inf vs inf (NaN)
     l_strictly, r_strictly = (t_l < t_r) & apart, (t_r < t_l) & apart
     ret_l = (action == RET_L) | ((action == RET_CLOSER) & l_closer) | ((action == RET_L_ELSE_LOOP_R) & l_strictly)
@@ -218,23 +250,23 @@ def _classify(b, tree, kind, group, tie, tmax, t_bound, state, t_start, t_l, lea
     loop_r = classify & ~loop_l & loop_r & (t_r != dr.inf)
     # A provisional hit before the node's own bound is not the node's answer: search that
     # child again from its bound (redo), which finds its real next event.
-    redo_l = ret_l & K.info_provisional(info_l) & (t_l < t_bound)
-    redo_r = ret_r & K.info_provisional(info_r) & (t_r < t_bound)
+    redo_l = ret_l & K.info_provisional(hit_l.info) & (t_l < t_bound)
+    redo_r = ret_r & K.info_provisional(hit_r.info) & (t_r < t_bound)
     ret_l, ret_r = ret_l & ~redo_l, ret_r & ~redo_r
     # A loop whose restart lies at or past the node's bound: the node keeps its state up
     # to the bound (union: inside, the sibling is; otherwise outside), a provisional hit.
     t_loop = dr.maximum(t_l, t_r)
-    past = (loop_l | loop_r) & (t_loop >= t_bound) & (t_bound < tmax)
+    past = (loop_l | loop_r) & (t_loop >= t_bound) & (t_bound < ray.tmax)
     loop_l, loop_r = (loop_l & ~past) | redo_l, (loop_r & ~past) | redo_r
     ret_miss = classify & ~(ret_l | ret_r | loop_l | loop_r | past)
     # A returned right hit of a difference changes class and flips its normal.
     flip = dr.select(is_diff, FLIP_BIT, 0)
-    info_r_out = K.with_class(info_r, cls_r, flip)
+    info_r_out = K.with_class(hit_r.info, cls_r, flip)
     # The returned hit goes into both registers (the parent's frame picks the slot).
     res_t = dr.select(ret_r, t_r, dr.select(ret_l, t_l, dr.select(past, t_bound, dr.inf)))
-    res_leaf = dr.select(ret_r, leaf_r, dr.select(ret_l, leaf_l, NO_LEAF))
+    res_leaf = dr.select(ret_r, hit_r.leaf, dr.select(ret_l, hit_l.leaf, NO_INDEX))
     past_info = dr.select(kind == UNION, b.UInt32(EXIT), b.UInt32(ENTER)) | K.PROVISIONAL_BIT
-    res_info = dr.select(ret_r, info_r_out, dr.select(ret_l, info_l, dr.select(past, past_info, MISS)))
+    res_info = dr.select(ret_r, info_r_out, dr.select(ret_l, hit_l.info, dr.select(past, past_info, MISS)))
     returning = ret_l | ret_r | ret_miss | past
     # A loop advances the child X whose event comes first; until the sibling Y's event the
     # parent's state is fixed by Y (union: Y inside; intersection: Y outside), so X's events
@@ -246,12 +278,10 @@ def _classify(b, tree, kind, group, tie, tmax, t_bound, state, t_start, t_l, lea
     else:
         t_start = dr.select(loop_l, t_l, dr.select(loop_r, t_r, t_start))
     t_start = dr.select(redo_l, t_l, dr.select(redo_r, t_r, t_start))
-    t_l, leaf_l, info_l = (dr.select(returning, res_t, t_l), dr.select(returning, res_leaf, leaf_l),
-                           dr.select(returning, res_info, info_l))
-    t_r, leaf_r, info_r = (dr.select(returning, res_t, t_r), dr.select(returning, res_leaf, leaf_r),
-                           dr.select(returning, res_info, info_r))
+    returned = b.Hit(res_t, res_leaf, res_info)
+    hit_l, hit_r = dr.select(returning, returned, hit_l), dr.select(returning, returned, hit_r)
     state = dr.select(returning, RETURN, dr.select(loop_l, GOTO_L_LOOP, dr.select(loop_r, GOTO_R_LOOP, state)))
-    return state, t_start, t_l, leaf_l, info_l, t_r, leaf_r, info_r
+    return state, t_start, hit_l, hit_r
 
 
 @dr.syntax
@@ -262,8 +292,8 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
 
     Lanes where `active` is false do no work and miss (an integrator's finished paths, or
     shadow rays it does not need, would otherwise be traced in full). `start_prim` (per lane,
-    or NO_LEAF) is the primitive whose surface the ray starts on, a hint for the set walk
-    (`engine.leaf_events.next_event`) that changes no hit distance or class.
+    or NO_INDEX) is the primitive whose surface the ray starts on, a hint for the set walk
+    (`engine.set_walk.next_event`) that changes no hit distance or class.
     """
     b = tree.b
     tree = Untraversed(tree)
@@ -274,13 +304,12 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
             1 if start_prim is None else dr.width(start_prim))
     o, d, k = scene_rays(tree, o, d)
     tmin, tmax = tmin * k, tmax * k
-    inv_d = inverse_direction(b, d)
-    tie = _tie_tolerance(b, tree, o, d)
+    ray = b.SceneRay(o, d, inverse_direction(b, d), _tie_tolerance(tree, o, d), tmax)
     if dr.hint(start_prim is not None, mode="scalar"):
         # The start primitive's leaf, if it is a set member, and the set.
         known = b.UInt32(start_prim) < opaque(tree, b.UInt32, tree.num_prims)
         start_leaf, start_set = dr.gather(b.module.Array2u, tree.prim_start, b.UInt32(start_prim), known)
-        start_set = dr.select(known, start_set, NO_LEAF)
+        start_set = dr.select(known, start_set, NO_INDEX)
 
     # ---- Loop state (all full width: a width-1 literal stack index misbehaved in Dr.Jit 1.5,
     #      see tests/test_drjit_workarounds.py) ----
@@ -289,14 +318,13 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
     node = opaque(tree, b.UInt32, tree.root) + dr.zeros(b.UInt32, n)   # operation node whose children are in play
     max_iterations = opaque(tree, b.UInt32, tree.max_iterations)
     t_start = b.Float(tmin)                         # re-intersection starts strictly after this
-    t_l, leaf_l, info_l = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
-    t_r, leaf_r, info_r = dr.full(b.Float, dr.inf, n), dr.full(b.UInt32, NO_LEAF, n), dr.full(b.UInt32, MISS, n)
+    hit_l, hit_r = no_hit(b, n), no_hit(b, n)       # registers L and R: the children's hits
     state = dr.full(b.UInt32, GOTO_L_FRESH, n)
     t_bound = b.Float(tmax)                         # events of `node` past this do not matter
     swapped = dr.zeros(b.Bool, n)                   # registers L / R hold `node`'s right / left child
     sp = dr.zeros(b.UInt32, n)                      # shared depth of both stacks
     steps = dr.zeros(b.UInt32, n)                  # automaton steps
-    walked = dr.zeros(b.UInt32, n)                 # set-walk iterations (engine.leaf_events); a walk runs to
+    walked = dr.zeros(b.UInt32, n)                 # set-walk iterations (engine.set_walk); a walk runs to
                                                    # its end, the iteration bound is tested between steps
     hit_t = dr.alloc_local(b.Float, tree.stack_size)       # hit stack: t (or a saved t_start)
     hit_leaf = dr.alloc_local(b.UInt32, tree.stack_size)   #            leaf node
@@ -305,7 +333,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
     bound = dr.alloc_local(b.Float, tree.stack_size)       #              the parent's t_bound
 
     # Rays that miss the root box are done before the loop starts.
-    state = dr.select(b.Bool(active) & _box_hit(b, tree, node, o, inv_d, t_start, tmax, True), state, DONE)
+    state = dr.select(b.Bool(active) & box_meets(tree, ray, node, t_start), state, DONE)
 
     # `sp < stack_size` never stops a lane (no tree descends deeper than its height), but it
     # puts the stack size into the kernel's IR: Dr.Jit 1.5 leaves the sizes of `alloc_local`
@@ -316,7 +344,7 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
     # (Dr.Jit would otherwise record the body twice, once to find them unchanged).
     while dr.hint((state != DONE) & (steps + walked < max_iterations) & (sp < stack_size), mode="symbolic",
                   label="csg_traverse",
-                  exclude=[o, d, inv_d, tie, tmin, tmax, max_iterations, start_prim, start_leaf, start_set]):
+                  exclude=[ray, tmin, tmax, max_iterations, start_prim, start_leaf, start_set]):
         steps += 1
         # Register updates use dr.select rather than nested symbolic ifs: they are cheap, and
         # a literal assigned in two sibling branches misbehaved in Dr.Jit 1.5's LLVM backend
@@ -326,76 +354,69 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
         # A descent into an operation child is followed, in the same step, by GoTo at that
         # child (each counted as a step), so that a step's Classify and Return are not
         # paid on every level of a descent.
-        (kind, group, going, go_right, fresh_left, t_start, swapped, child, child_bits, child_is_leaf, child_bound,
-         entry_bound, exit_bound, single, vacant, in_box, provisional, descend) = _goto(
-            b, tree, o, d, inv_d, tie, tmax, n, node, state, t_start, t_bound, swapped, t_l, info_l)
-        choosing = descend & (steps + walked < max_iterations) & (sp < stack_size)
+        choice, t_start, swapped = _goto(tree, ray, node, state, t_start, t_bound, swapped, hit_l)
+        choosing = choice.descend & (steps + walked < max_iterations) & (sp < stack_size)
         while dr.hint(choosing, label="csg_descend",
-                      exclude=[o, d, inv_d, tie, tmin, tmax, max_iterations, walked, t_start, t_l, leaf_l, info_l,
-                               t_r, leaf_r, info_r, start_prim, start_leaf, start_set]):
+                      exclude=[ray, tmin, tmax, max_iterations, walked, t_start, hit_l, hit_r, start_prim, start_leaf,
+                               start_set]):
             # Push what to do with the child's hit when it comes back, and where (unless the
             # child takes this node's place).
-            push = ~single
-            if dr.hint(push, exclude=[t_start, t_l, leaf_l, info_l, t_r, leaf_r, info_r]):
-                hit_t.write(dr.select(fresh_left, t_start, dr.select(go_right, t_l, t_r)), sp, push)
-                hit_leaf.write(dr.select(go_right, leaf_l, leaf_r), sp, push)
-                hit_info.write(dr.select(go_right, info_l, info_r), sp, push)
-                frame.write(dr.select(fresh_left, SAVE_L, dr.select(go_right, LOAD_L, LOAD_R))
+            push = ~choice.single
+            if dr.hint(push, exclude=[t_start, hit_l, hit_r]):
+                hit_t.write(dr.select(choice.fresh_left, t_start, dr.select(choice.go_right, hit_l.t, hit_r.t)),
+                            sp, push)
+                hit_leaf.write(dr.select(choice.go_right, hit_l.leaf, hit_r.leaf), sp, push)
+                hit_info.write(dr.select(choice.go_right, hit_l.info, hit_r.info), sp, push)
+                frame.write(dr.select(choice.fresh_left, SAVE_L, dr.select(choice.go_right, LOAD_L, LOAD_R))
                             | dr.select(swapped, SWAPPED_FRAME, 0) | (node << FRAME_NODE_SHIFT), sp, push)
                 bound.write(t_bound, sp, push)
             sp = dr.select(push, sp + 1, sp)
-            node = b.UInt32(child)
-            t_bound = dr.select(push, child_bound, t_bound)
+            node = b.UInt32(choice.child)
+            t_bound = dr.select(push, choice.child_bound, t_bound)
             state = dr.select(choosing, GOTO_L_FRESH, state)
             steps += 1
             # At the child, a fresh search: a literal state, so that what only other states
             # need folds away (t_start among them: it stays).
-            (kind, group, going, go_right, fresh_left, _, swapped, child, child_bits, child_is_leaf, child_bound,
-             entry_bound, exit_bound, single, vacant, in_box, provisional, descend) = _goto(
-                b, tree, o, d, inv_d, tie, tmax, n, node, dr.full(b.UInt32, GOTO_L_FRESH, n), t_start, t_bound,
-                swapped, t_l, info_l)
-            choosing = descend & (steps + walked < max_iterations) & (sp < stack_size)
+            choice, _, swapped = _goto(tree, ray, node, dr.full(b.UInt32, GOTO_L_FRESH, n), t_start, t_bound,
+                                       swapped, hit_l)
+            choosing = choice.descend & (steps + walked < max_iterations) & (sp < stack_size)
         # A leaf, or a subtree whose box the ray misses from here on: its hit is known now.
-        co_bounded = (child_bits & K.CHILD_NEGATIVE) != 0
-        t_c = dr.select(provisional, child_bound, dr.inf)
+        co_bounded = (choice.child_bits & K.CHILD_NEGATIVE) != 0
+        t_c = dr.select(choice.provisional, choice.child_bound, dr.inf)
         info_c = dr.select(co_bounded, b.UInt32(EXIT), b.UInt32(MISS))   # co-bounded: inside forever
-        info_c = dr.select(provisional, dr.select(co_bounded, b.UInt32(EXIT), b.UInt32(ENTER)) | K.PROVISIONAL_BIT,
-                           info_c)
-        leaf_c = b.UInt32(child)
-        searching = in_box & child_is_leaf
+        info_c = dr.select(choice.provisional,
+                           dr.select(co_bounded, b.UInt32(EXIT), b.UInt32(ENTER)) | K.PROVISIONAL_BIT, info_c)
+        found = b.Hit(t_c, b.UInt32(choice.child), info_c)
+        searching = choice.in_box & choice.child_is_leaf
         # A lone leaf's next event is its first event after t_start, whatever the bounds
         # (a set of one: no other member can take over), so it skips the set walk's loop.
-        lone = searching & ((child_bits & K.CHILD_LEAF) != 0)
-        if dr.hint(lone, exclude=[o, d, tie]):
-            leaf_flags, prim, _, _ = node_record(b, tree, child, lone)
-            t_c, info_c, _ = leaf_hit(b, tree, leaf_flags, prim, o, d, t_start, tie)
+        lone = searching & ((choice.child_bits & K.CHILD_LEAF) != 0)
+        if dr.hint(lone, exclude=[ray]):
+            leaf_flags, prim, _, _ = node_record(b, tree, choice.child, lone)
+            found, _ = leaf_hit(tree, ray, choice.child, leaf_flags, prim, t_start)
         walking = searching & ~lone
-        if dr.hint(walking, exclude=[o, d, inv_d, tie, tmin, tmax, start_prim, start_leaf, start_set]):
+        if dr.hint(walking, exclude=[ray, tmin, tmax, start_prim, start_leaf, start_set]):
             member = None
             if dr.hint(start_prim is not None, mode="scalar"):
                 # Only the ray's first search from its own start is inside the start member.
-                member = dr.select(walking & (start_set == child) & (t_start == tmin), start_leaf, NO_LEAF)
-            t_c, leaf_c, info_c, iterations = next_event(b, tree, child, o, d, inv_d, t_start, entry_bound,
-                                                         exit_bound, tmax, tie, walking, member)
+                member = dr.select(walking & (start_set == choice.child) & (t_start == tmin), start_leaf, NO_INDEX)
+            found, iterations = next_event(tree, ray, choice.child, t_start, (choice.entry_bound, choice.exit_bound),
+                                           walking, member)
             walked += iterations
         # `descend` is still set only where the iteration bound stopped the descent: that
         # lane ends unfinished.
-        known = going & ~descend
-        set_r, set_l = known & go_right, known & ~go_right
-        t_r, leaf_r, info_r = dr.select(set_r, t_c, t_r), dr.select(set_r, leaf_c, leaf_r), dr.select(set_r, info_c, info_r)
-        t_l, leaf_l, info_l = dr.select(set_l, t_c, t_l), dr.select(set_l, leaf_c, leaf_l), dr.select(set_l, info_c, info_l)
+        known = choice.going & ~choice.descend
+        hit_r = dr.select(known & choice.go_right, found, hit_r)
+        hit_l = dr.select(known & ~choice.go_right, found, hit_l)
         # The sibling of a single known child, and both children of a vacant node, miss.
-        miss_r, miss_l = (known & single) | vacant, vacant
-        t_r, leaf_r, info_r = dr.select(miss_r, dr.inf, t_r), dr.select(miss_r, NO_LEAF, leaf_r), \
-            dr.select(miss_r, MISS, info_r)
-        t_l, leaf_l, info_l = dr.select(miss_l, dr.inf, t_l), dr.select(miss_l, NO_LEAF, leaf_l), \
-            dr.select(miss_l, MISS, info_l)
-        state = dr.select(descend, GOTO_L_FRESH, dr.select(
-            known, dr.select(fresh_left & ~single, GOTO_R_FRESH, CLASSIFY), dr.select(vacant, CLASSIFY, state)))
+        hit_r = dr.select((known & choice.single) | choice.vacant, no_hit(b, n), hit_r)
+        hit_l = dr.select(choice.vacant, no_hit(b, n), hit_l)
+        state = dr.select(choice.descend, GOTO_L_FRESH, dr.select(
+            known, dr.select(choice.fresh_left & ~choice.single, GOTO_R_FRESH, CLASSIFY),
+            dr.select(choice.vacant, CLASSIFY, state)))
 
         # ---- Classify: apply the state table of `node` ----
-        state, t_start, t_l, leaf_l, info_l, t_r, leaf_r, info_r = _classify(
-            b, tree, kind, group, tie, tmax, t_bound, state, t_start, t_l, leaf_l, info_l, t_r, leaf_r, info_r)
+        state, t_start, hit_l, hit_r = _classify(tree, ray, choice.flags, state, t_start, t_bound, hit_l, hit_r)
 
         # ---- Return: hand the hit (in both registers) to the parent's frame ----
         at_root = (state == RETURN) & (sp == 0)
@@ -407,21 +428,18 @@ def traverse(tree: KernelTree, o, d, tmin, tmax, active=True, start_prim=None):
             swapped = dr.select(popping, (what & SWAPPED_FRAME) != 0, swapped)
             what = what & (SWAPPED_FRAME - 1)
             t_bound = dr.select(popping, bound.read(sp, popping), t_bound)
-            saved_t, saved_leaf, saved_info = hit_t.read(sp, popping), hit_leaf.read(sp, popping), \
-                hit_info.read(sp, popping)
+            saved = b.Hit(hit_t.read(sp, popping), hit_leaf.read(sp, popping), hit_info.read(sp, popping))
             load_l = popping & (what == LOAD_L)      # the hit is the right child's; reload the left
             load_r = popping & (what == LOAD_R)      # the hit is the left child's; reload the right
             save_l = popping & (what == SAVE_L)      # the hit is the left child's; now go right
-            t_start = dr.select(save_l, saved_t, t_start)
-            t_l, leaf_l, info_l = (dr.select(load_l, saved_t, t_l), dr.select(load_l, saved_leaf, leaf_l),
-                                   dr.select(load_l, saved_info, info_l))
-            t_r, leaf_r, info_r = (dr.select(load_r, saved_t, t_r), dr.select(load_r, saved_leaf, leaf_r),
-                                   dr.select(load_r, saved_info, info_r))
+            t_start = dr.select(save_l, saved.t, t_start)
+            hit_l = dr.select(load_l, saved, hit_l)
+            hit_r = dr.select(load_r, saved, hit_r)
             state = dr.select(save_l, GOTO_R_FRESH, dr.select(popping, CLASSIFY, state))
         state = dr.select(at_root, DONE, state)
 
     finished = state == DONE
     # A provisional hit at the root can only sit at tmax: nothing before it.
-    hit = finished & (K.info_class(info_l) != MISS) & (t_l <= tmax) & ~K.info_provisional(info_l)
-    t = dr.select(hit, t_l / k, dr.inf)
-    return t, dr.select(hit, leaf_l, NO_LEAF), info_l, finished, steps + walked
+    hit = finished & (K.info_class(hit_l.info) != MISS) & (hit_l.t <= tmax) & ~K.info_provisional(hit_l.info)
+    t = dr.select(hit, hit_l.t / k, dr.inf)
+    return t, dr.select(hit, hit_l.leaf, NO_INDEX), hit_l.info, finished, steps + walked

@@ -2,8 +2,9 @@
 
 `upload` turns a `FlatTree` (numpy, float64) into float32/uint32 Dr.Jit buffers with one
 fixed-size record per node (4 words: flags, children, parent; 8 floats: the padded box) and
-per primitive (16 floats), gathered by index times record size. Word layouts are those of
-`engine.layout`.
+per primitive (16 floats), gathered by index times record size, with the set walk's records
+that `engine.set_layout` builds. Word layouts are those of `engine.layout`; the gathers at
+the end of this module read them back in the kernel.
 """
 from __future__ import annotations
 
@@ -15,60 +16,13 @@ import numpy as np
 from . import layout as K
 from .backend import Backend, owned
 from .lowering import FlatTree
-from .neighbours import GRID_WORDS, NO_ENTRY, cell_grids, neighbour_trees
+from .neighbours import GRID_WORDS
+from .options import TraversalOptions
+from .set_layout import NodeArrays, find_sets, set_records
 from ..errors import ModelError, TreeTooDeepError
 
 MAX_STACK = 1024        # deepest tree the per-lane stacks are allocated for
 MAX_NODES = 1 << 29     # a stack frame holds a node id above 3 bits of its own (engine.automaton)
-MIN_SET_SIZE = 4
-# Fewest members of a hole set given a cell grid: a smaller set's 4-wide tree is two levels
-# deep, as shallow as a cell's, and City-343k's 34,300 sets of 8 windows took 620 MB of cell
-# trees and 12 s to build.
-MIN_GRID_SIZE = 64
-
-
-class TraversalOptions:
-    """Switches of the automaton's traversal mechanisms (all on by default; tests and
-    benchmarks turn them off one at a time).
-
-    A plain class: Dr.Jit's symbolic control flow walks dataclasses it finds in loop state
-    (the KernelTree) and would try to assign to a frozen one.
-    """
-
-    __slots__ = ("restart_at_sibling", "skip_to_sibling", "bounded_search", "near_first", "sets", "pass_through",
-                 "min_set_size", "compounds", "neighbour_passes", "cell_passes", "min_grid_size")
-
-    def __init__(self, restart_at_sibling: bool = True, skip_to_sibling: bool = True, bounded_search: bool = True,
-                 near_first: bool = True, sets: bool = True, pass_through: bool = True, *,
-                 min_set_size: int = MIN_SET_SIZE, compounds: bool = True, neighbour_passes: bool = True,
-                 cell_passes: bool = True, min_grid_size: int = MIN_GRID_SIZE):
-        self.restart_at_sibling = restart_at_sibling   # a loop restarts the looping child at its sibling's event
-        self.skip_to_sibling = skip_to_sibling         # a fresh second child starts at the first child's event
-                                                       # when that child fixes the node's state
-        self.bounded_search = bounded_search           # otherwise the second child is searched only up to the
-                                                       # first child's event (provisional results beyond)
-        self.near_first = near_first                   # a fresh union / intersection search starts with the
-                                                       # child whose box the ray enters first
-        self.sets = sets                               # unions of leaves are searched as n-ary nodes
-                                                       # (engine.leaf_events)
-        self.pass_through = pass_through               # an operation with a child the ray never meets
-                                                       # after t_start is its other child, or a miss
-        self.min_set_size = min_set_size               # fewest members of a union searched as a set
-        self.compounds = compounds                     # set members may be small intersections and
-                                                       # differences of convex leaves, not only leaves
-        self.neighbour_passes = neighbour_passes       # a set walk inside at a member's exit searches
-                                                       # that member's neighbours (engine.neighbours)
-        self.cell_passes = cell_passes                 # a set walk that asks only the state at a point
-                                                       # searches the members near its grid cell
-        self.min_grid_size = min_grid_size             # fewest members of a set given a grid
-
-    def __repr__(self) -> str:
-        return (f"TraversalOptions(restart_at_sibling={self.restart_at_sibling}, "
-                f"skip_to_sibling={self.skip_to_sibling}, bounded_search={self.bounded_search}, "
-                f"near_first={self.near_first}, sets={self.sets}, pass_through={self.pass_through}, "
-                f"min_set_size={self.min_set_size}, compounds={self.compounds}, "
-                f"neighbour_passes={self.neighbour_passes}, cell_passes={self.cell_passes}, "
-                f"min_grid_size={self.min_grid_size})")
 
 
 @dataclass
@@ -80,22 +34,23 @@ class KernelTree:
     node_wide: object       # Float, 16 per node: its node_record words (as float bits), then an
                             # operation's children's boxes (left lower, upper, right lower, upper; xyz):
                             # one gather per visit where a traversal step tests both children
-    set_nodes: object       # Float, 32 per 4-wide node of the sets (engine.leaf_events): four child refs
+    set_nodes: object       # Float, 32 per 4-wide node of the sets (engine.set_layout): four child refs
                             # (UInt32 bits: a leaf's node id, or SET_NODE_TAG | a 4-wide node), then
                             # their boxes (lower xyz, upper xyz each; NaN for an empty slot)
     walk_entry: object      # UInt32 per node: where a set walk from it starts (its 4-wide root, or
                             # the node itself for a leaf); a compound member's literal record
     neighbour_entry: object  # UInt32 per node: where a set walk inside at this member's exit starts
-                             # (its neighbour tree in set_nodes, engine.neighbours; NO_ENTRY: the set's root);
-                             # at a set's root, its cell grid in set_grids (NO_ENTRY: none); after
-                             # the nodes, the entry of each grid cell's tree
+                             # (its neighbour tree in set_nodes, engine.neighbours; NO_INDEX: the set's root)
+    set_grid: object         # UInt32 per node: a set root's cell grid in set_grids (NO_INDEX: none)
     set_grids: object        # UInt32, GRID_WORDS per cell grid of a set (engine.neighbours.cell_grids)
+    cell_entry: object       # UInt32 per grid cell: where a pass from a point in it starts (its tree in
+                             # set_nodes; NO_INDEX: the set's root)
     compound_literals: object  # UInt32, COMPOUND_RECORD_WORDS per compound set member: its literals
-                               # (layout.LITERAL_COMPLEMENT | leaf node id; NO_LITERAL for none),
+                               # (layout.LITERAL_COMPLEMENT | leaf node id; NO_INDEX for none),
                                # then their primitives
     prim_start: object      # UInt32, 2 per primitive: its leaf node, and the set that leaf is a member
-                            # of (NO_LEAF if none): where a ray starting on the primitive's surface
-                            # starts inside a set member (engine.leaf_events.next_event's `start_member`)
+                            # of (NO_INDEX if none): where a ray starting on the primitive's surface
+                            # starts inside a set member (engine.set_walk.next_event's `start_member`)
     walk_stack_size: int    # per-lane entries of the set walk's stack (a size class, as stack_size)
     prim_record: object     # Float, 16 per primitive (layout.PRIM_*)
     planes: object          # Float, 4 per plane (convex faces and mesh triangles)
@@ -143,37 +98,18 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
            options: TraversalOptions | None = None) -> KernelTree:
     """Copy a FlatTree to device arrays (float32). A lone leaf or set gets a virtual union root."""
     b = backend
-    kind, neg = flat.node_kind.copy(), flat.node_negative.copy()
-    left, right, parent = flat.node_left.copy(), flat.node_right.copy(), flat.node_parent.copy()
-    lower, upper = flat.node_lower.copy(), flat.node_upper.copy()
-    group = np.zeros(len(kind), bool) if flat.node_group is None else flat.node_group.copy()
     options = options or TraversalOptions()
-    compound = _compound_roots(kind, neg, group, left, right, parent, flat) if options.compounds and options.sets \
-        else np.zeros(len(kind), bool)
-    sets = _set_roots(kind, neg, group, left, right, parent, flat.node_height, options.min_set_size, compound)
-    compound &= _set_owners(sets, compound, kind, left, right) >= 0
-    wrap = bool(kind[flat.root] == K.LEAF) or bool(sets[flat.root])
+    nodes = NodeArrays.of(flat)
+    marks = find_sets(nodes, flat, options)
+    # The automaton starts at an operation and searches leaves and sets as its children.
+    wrap = bool(nodes.kind[flat.root] == K.LEAF) or bool(marks.is_set[flat.root])
     if wrap:
-        # The automaton starts at an operation and searches leaves and sets as its children:
-        # root' = union(root, nothing), where the dummy leaf has an empty box, which the box
-        # test rejects, so it is never intersected.
-        n = len(kind)
-        kind = np.concatenate([kind, [K.UNION, K.LEAF]])
-        neg = np.concatenate([neg, [False, False]])
-        group = np.concatenate([group, [False, False]])
-        sets = np.concatenate([sets, [False, False]])
-        compound = np.concatenate([compound, [False, False]])
-        left = np.concatenate([left, [flat.root, 0]])
-        right = np.concatenate([right, [n + 1, -1]])
-        parent = np.concatenate([parent, [-1, n]])
-        parent[flat.root] = n
-        lower = np.vstack([lower, lower[flat.root], [np.inf] * 3])
-        upper = np.vstack([upper, upper[flat.root], [-np.inf] * 3])
-        root = n
+        nodes, marks, root = nodes.under_virtual_union(flat.root), marks.extended(2), len(nodes)
     else:
         root = flat.root
-    if len(kind) >= MAX_NODES:
-        raise ModelError(f"the CSG tree has {len(kind)} nodes; the kernel addresses fewer than {MAX_NODES}")
+    n_nodes = len(nodes)
+    if n_nodes >= MAX_NODES:
+        raise ModelError(f"the CSG tree has {n_nodes} nodes; the kernel addresses fewer than {MAX_NODES}")
     height = int(flat.node_height.max(initial=0)) + (1 if wrap else 0)
     if height > MAX_STACK:
         raise TreeTooDeepError(f"the CSG tree is {height} operations deep; the kernel allows {MAX_STACK}. "
@@ -182,17 +118,65 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     # largest half-side 1. Rays are mapped there on entry (`scene_rays`), hits keep their t,
     # and float32 then traces a scene of any size (a 1e22 mm "infinite" box as well as a
     # micrometre part) the same way (docs/limits.md).
-    centre, inv_scale = _scene_frame(lower[root], upper[root])
-    lower, upper = (lower - centre) * inv_scale, (upper - centre) * inv_scale
+    centre, inv_scale = _scene_frame(nodes.lower[root], nodes.upper[root])
+    nodes.lower, nodes.upper = (nodes.lower - centre) * inv_scale, (nodes.upper - centre) * inv_scale
+    box = _padded_boxes(nodes.lower, nodes.upper)
+    node_record, node_wide = _node_records(nodes, marks.is_set, box)
+    walk = set_records(nodes, marks, box, flat, (centre, inv_scale), options, root)
+    prim_record, planes, triangles, mesh_nodes = _prim_records(flat, centre, inv_scale)
+    root_corners = np.abs(np.concatenate([nodes.lower[root], nodes.upper[root]]))
+    extent = float(np.max(root_corners[np.isfinite(root_corners)], initial=0.0))
+    if max_iterations is None:
+        # Every loop step consumes a distinct primitive event; each event can be re-derived
+        # once per ancestor. This bound is far above any real ray and only stops runaways.
+        max_iterations = int(min(2**31 - 1, 64 + 8 * n_nodes * (height + 2)))
+    tree = KernelTree(
+        b=b, node_record=owned(b.UInt32, node_record.astype(np.uint32).ravel()),
+        node_box=owned(b.Float, box.astype(np.float32).ravel()), node_wide=owned(b.Float, node_wide.ravel()),
+        set_nodes=owned(b.Float, walk.set_nodes.ravel()), walk_entry=owned(b.UInt32, walk.walk_entry),
+        neighbour_entry=owned(b.UInt32, walk.neighbour_entry), set_grid=owned(b.UInt32, walk.set_grid),
+        set_grids=owned(b.UInt32, walk.grids.ravel() if len(walk.grids) else np.zeros(GRID_WORDS, np.uint32)),
+        cell_entry=owned(b.UInt32, walk.cell_entry if len(walk.cell_entry) else np.full(1, K.NO_INDEX, np.uint32)),
+        compound_literals=owned(b.UInt32, walk.compound_literals.ravel()),
+        prim_start=owned(b.UInt32, walk.prim_start.ravel()),
+        walk_stack_size=max(stack_size_class(height), stack_size_class(walk.walk_depth + 1), WALK_STACK_MIN),
+        prim_record=owned(b.Float, prim_record.ravel()),
+        planes=owned(b.Float, planes.astype(np.float32).ravel()),
+        triangles=owned(b.Float, triangles.astype(np.float32).ravel()),
+        mesh_nodes=owned(b.Float, mesh_nodes.ravel()),
+        root=int(root), root_wrapped=wrap, stack_size=stack_size_class(height), num_nodes=n_nodes,
+        num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent,
+        centre=tuple(float(c) for c in centre), inv_scale=float(inv_scale),
+        has_meshes=bool(np.any(flat.prim_shape == K.MESH)), has_groups=bool(np.any(nodes.group)),
+        has_compounds=bool(np.any(marks.is_compound)), has_neighbours=bool(np.any(walk.neighbour_entry != K.NO_INDEX)),
+        has_grids=bool(len(walk.grids)),
+        shape_kinds=frozenset(int(c) for c in np.unique(flat.prim_shape)), options=options)
+    # Made now rather than at a first trace, which may be recorded by dr.freeze (queries.trace_rays).
+    for dtype, value in ((b.UInt32, tree.root), (b.UInt32, tree.max_iterations), (b.UInt32, tree.num_prims),
+                         (b.Float, tree.extent), (b.Float, tree.inv_scale), *((b.Float, c) for c in tree.centre)):
+        opaque(tree, dtype, value)
+    return tree
+
+
+def _padded_boxes(lower, upper) -> np.ndarray:
+    """(N, 8) boxes as the kernel stores them: lower xyz, 0, upper xyz, 0, padded outwards.
+
+    An empty box (lower > upper on some axis: the dummy leaf, an intersection of disjoint
+    boxes) is stored as NaN: every slab comparison with NaN is false, so the box test
+    rejects it. The slab test alone accepts many empty boxes."""
     pad = _box_pad(lower, upper)
-    # An empty box (lower > upper on some axis: the dummy leaf, an intersection of disjoint
-    # boxes) is stored as NaN: every slab comparison with NaN is false, so the box test
-    # rejects it. The slab test alone accepts many empty boxes.
-    empty = np.any(lower > upper, axis=1)
     zeros = np.zeros((len(lower), 1))
     box = np.hstack([lower - pad, zeros, upper + pad, zeros])
-    box[empty] = np.nan
-    order, left_high = _child_order(kind, left, right, lower, upper)
+    box[np.any(lower > upper, axis=1)] = np.nan
+    return box
+
+
+def _node_records(nodes: NodeArrays, sets, box) -> tuple[np.ndarray, np.ndarray]:
+    """(node_record (N, 4) uint32, node_wide (N, NODE_WIDE_FLOATS) float32) of the nodes
+    (`KernelTree` has their words); `box` their padded boxes in the scene frame."""
+    kind, neg, group, left, right, parent = nodes.kind, nodes.negative, nodes.group, nodes.left, nodes.right, \
+        nodes.parent
+    order, left_high = _child_order(kind, left, right, nodes.lower, nodes.upper)
     own = (neg * K.CHILD_NEGATIVE | (kind == K.LEAF) * K.CHILD_LEAF | sets * K.CHILD_SET).astype(np.uint32)
     ops = kind != K.LEAF
     children = np.zeros(len(kind), np.uint32)
@@ -205,34 +189,13 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     for offset, child in ((4, left), (10, right)):
         node_wide[ops, offset:offset + 3] = box[child[ops], 0:3]
         node_wide[ops, offset + 3:offset + 6] = box[child[ops], 4:7]
-    set_nodes, walk_entry, pending = _wide_sets(sets, kind, left, right, lower, upper, box, compound)
-    owner = _set_owners(sets, compound, kind, left, right)
-    neighbour_entry = np.full(len(kind), NO_ENTRY, np.uint32)
-    grids = np.zeros((0, GRID_WORDS), np.uint32)
-    has_neighbours = False
-    if options.sets and (options.neighbour_passes or options.cell_passes):
-        leaf = kind == K.LEAF
-        convex = leaf & ~np.isin(flat.prim_shape[np.where(leaf, left, 0)], K.NON_CONVEX_SHAPES)
-        # Only where rays cross a set's inside outside the solid (holes: a subtracted or
-        # complemented set) do its passes from inside matter; elsewhere the trees would cost
-        # memory (a Satellites' parts: 23 MB more for 87,500 primitives) and save little.
-        holes = sets & _subtracted(kind, neg, left, right, root)
-        in_hole = np.where(holes[np.maximum(owner, 0)], owner, -1)
-        balls = _sphere_balls(flat, kind, left, centre, inv_scale)
-        if options.neighbour_passes:
-            trees, neighbour_entry = neighbour_trees(in_hole, box, balls, convex, len(set_nodes))
-            has_neighbours = bool(np.any(neighbour_entry != NO_ENTRY))
-            if has_neighbours:
-                set_nodes = np.concatenate([set_nodes, trees])
-        if options.cell_passes:
-            cell_records, grids, cells, grid_roots = cell_grids(in_hole, box, balls, len(set_nodes), len(kind),
-                                                                options.min_grid_size)
-            if len(grids):
-                set_nodes = np.concatenate([set_nodes, cell_records])
-                neighbour_entry[grid_roots] = np.arange(len(grids), dtype=np.uint32)
-                neighbour_entry = np.concatenate([neighbour_entry, cells])
-    compound_literals = _compound_literals(compound, kind, left, right, walk_entry)
-    prim_start = _prim_start(flat.num_prims, len(flat.node_kind), owner, kind, left)
+    return node_record, node_wide
+
+
+def _prim_records(flat: FlatTree, centre, inv_scale) -> tuple[np.ndarray, ...]:
+    """(prim_record, planes, triangles, mesh_nodes): the primitives' records (layout.PRIM_*),
+    their maps read from the scene frame, and the planes, triangles and mesh BVH nodes they
+    point into (one dummy row where there are none)."""
     prim_record = np.zeros((flat.num_prims, K.PRIM_RECORD_FLOATS), np.float32)
     # world -> canonical after scene -> world (x = centre + x' / inv_scale)
     rows = flat.prim_to_canonical.copy()
@@ -251,66 +214,7 @@ def upload(flat: FlatTree, backend: Backend, max_iterations: int | None = None,
     planes = flat.planes if len(flat.planes) else np.zeros((1, 4))
     triangles = flat.triangles if flat.triangles is not None and len(flat.triangles) else \
         np.zeros((1, K.TRIANGLE_FLOATS))
-    n_nodes = len(kind)
-    root_corners = np.abs(np.concatenate([lower[root], upper[root]]))
-    extent = float(np.max(root_corners[np.isfinite(root_corners)], initial=0.0))
-    if max_iterations is None:
-        # Every loop step consumes a distinct primitive event; each event can be re-derived
-        # once per ancestor. This bound is far above any real ray and only stops runaways.
-        max_iterations = int(min(2**31 - 1, 64 + 8 * n_nodes * (height + 2)))
-    tree = KernelTree(
-        b=b, node_record=owned(b.UInt32, node_record.astype(np.uint32).ravel()),
-        node_box=owned(b.Float, box.astype(np.float32).ravel()), node_wide=owned(b.Float, node_wide.ravel()),
-        set_nodes=owned(b.Float, set_nodes.ravel()), walk_entry=owned(b.UInt32, walk_entry),
-        neighbour_entry=owned(b.UInt32, neighbour_entry),
-        set_grids=owned(b.UInt32, grids.ravel() if len(grids) else np.zeros(GRID_WORDS, np.uint32)),
-        compound_literals=owned(b.UInt32, compound_literals.ravel()),
-        prim_start=owned(b.UInt32, prim_start.ravel()),
-        walk_stack_size=max(stack_size_class(height), stack_size_class(pending + 1), WALK_STACK_MIN),
-        prim_record=owned(b.Float, prim_record.ravel()),
-        planes=owned(b.Float, planes.astype(np.float32).ravel()),
-        triangles=owned(b.Float, triangles.astype(np.float32).ravel()),
-        mesh_nodes=owned(b.Float, mesh_nodes.ravel()),
-        root=int(root), root_wrapped=wrap, stack_size=stack_size_class(height), num_nodes=n_nodes,
-        num_prims=flat.num_prims, max_iterations=max_iterations, extent=extent,
-        centre=tuple(float(c) for c in centre), inv_scale=float(inv_scale),
-        has_meshes=bool(np.any(flat.prim_shape == K.MESH)), has_groups=bool(np.any(group)),
-        has_compounds=bool(np.any(compound)), has_neighbours=has_neighbours,
-        has_grids=bool(len(grids)),
-        shape_kinds=frozenset(int(c) for c in np.unique(flat.prim_shape)), options=options)
-    # Made now rather than at a first trace, which may be recorded by dr.freeze (queries.trace_rays).
-    for dtype, value in ((b.UInt32, tree.root), (b.UInt32, tree.max_iterations), (b.UInt32, tree.num_prims),
-                         (b.Float, tree.extent), (b.Float, tree.inv_scale), *((b.Float, c) for c in tree.centre)):
-        opaque(tree, dtype, value)
-    return tree
-
-
-def _subtracted(kind, neg, left, right, root) -> np.ndarray:
-    """Per node, whether its inside is outside the solid: an odd number of complements and
-    differences' right sides on its way from the root."""
-    odd = np.zeros(len(kind), bool)
-    odd[root] = neg[root]
-    frontier = np.array([root])
-    while frontier.size:
-        frontier = frontier[kind[frontier] != K.LEAF]
-        flip_right = kind[frontier] == K.DIFFERENCE
-        odd[left[frontier]] = odd[frontier] ^ neg[left[frontier]]
-        odd[right[frontier]] = odd[frontier] ^ flip_right ^ neg[right[frontier]]
-        frontier = np.concatenate([left[frontier], right[frontier]])
-    return odd
-
-
-def _sphere_balls(flat, kind, left, centre, inv_scale) -> np.ndarray:
-    """(centre xyz, radius) per node in the scene frame: a ball holding a sphere leaf (an
-    ellipsoid's largest semi-axis as the radius); NaN radius for every other node."""
-    balls = np.full((len(kind), 4), np.nan)
-    leaves = np.flatnonzero(kind == K.LEAF)
-    leaves = leaves[(left[leaves] < flat.num_prims)]
-    leaves = leaves[flat.prim_shape[left[leaves]] == K.SPHERE]
-    to_world = flat.prim_to_world[left[leaves]]
-    balls[leaves, :3] = (to_world[:, :3, 3] - centre) * inv_scale
-    balls[leaves, 3] = np.linalg.norm(to_world[:, :3, :3], axis=1).max(axis=1) * inv_scale
-    return balls
+    return prim_record, planes, triangles, mesh_nodes
 
 
 def _scene_frame(lower, upper) -> tuple[np.ndarray, float]:
@@ -388,172 +292,6 @@ def _child_order(kind, left, right, lower, upper):
     order[ops] = np.where(gap != 0, axis, K.NO_ORDER)
     left_high[ops] = gap > 0
     return order, left_high
-
-
-def _levels_bottom_up(kind, height) -> list:
-    """The operation nodes in groups of equal height, lowest first: one vectorized step per
-    level computes a per-node property from the children's."""
-    ops = np.flatnonzero(kind != K.LEAF)
-    ops = ops[np.argsort(height[ops], kind="stable")]
-    return np.split(ops, np.flatnonzero(np.diff(height[ops])) + 1)
-
-
-# Leaf shapes whose inside along a ray is one interval: compound members' literals.
-_CONVEX_SHAPES = (K.SPHERE, K.BOX, K.CONE, K.CONVEX)
-
-
-def _compound_roots(kind, neg, group, left, right, parent, flat) -> np.ndarray:
-    """Per node, whether it is a compound set member candidate: an intersection or difference
-    under a plain union whose subtree is an intersection of at most MAX_COMPOUND_LITERALS
-    literals, each a convex leaf or a complement of one (a difference's subtrahend, or a
-    union of leaves subtracted: A - (B | C) = A & ~B & ~C). The set walk finds its next event in
-    one member visit (`leaf_events.compound_hit`) where the automaton would descend into it,
-    as Satellites' wings with their cut-outs made it do."""
-    n = len(kind)
-    # Literals of the node as an intersection (as_is), and of its complement (negated); -1: none.
-    as_is, negated = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
-    leaves = np.flatnonzero(kind == K.LEAF)
-    convex = leaves[np.isin(flat.prim_shape[left[leaves]], _CONVEX_SHAPES) & ~neg[leaves]]
-    as_is[convex] = negated[convex] = 1
-    limit = K.MAX_COMPOUND_LITERALS
-
-    def total(a, c):
-        return np.where((a > 0) & (c > 0) & (a + c <= limit), a + c, -1)
-    for at in _levels_bottom_up(kind, flat.node_height):
-        plain = ~neg[at] & ~group[at]
-        l, r = left[at], right[at]
-        as_is[at] = np.where(plain & (kind[at] == K.INTERSECTION), total(as_is[l], as_is[r]),
-                             np.where(plain & (kind[at] == K.DIFFERENCE), total(as_is[l], negated[r]), -1))
-        negated[at] = np.where(plain & (kind[at] == K.UNION), total(negated[l], negated[r]), -1)
-    literals = as_is
-    has_parent = parent >= 0
-    under_union = np.zeros(n, bool)
-    p = parent[has_parent]
-    under_union[has_parent] = (kind[p] == K.UNION) & ~neg[p] & ~group[p]
-    return (literals > 0) & (kind != K.LEAF) & under_union
-
-
-def _compound_literals(compound, kind, left, right, walk_entry) -> np.ndarray:
-    """Literal records (layout.COMPOUND_RECORD_WORDS words each: the literals, then their leaves'
-    primitives, so that a literal's intersection reads no node record) of the compound members,
-    whose walk_entry becomes their record's index."""
-    roots = np.flatnonzero(compound)
-    records = np.full((max(len(roots), 1), K.COMPOUND_RECORD_WORDS), K.NO_LITERAL, np.uint32)
-    for index, root in enumerate(roots):
-        found, pending = [], [(int(root), False)]
-        while pending:
-            node, complement = pending.pop()      # complement: the node's complement is wanted
-            if kind[node] == K.LEAF:
-                found.append(node | (K.LITERAL_COMPLEMENT if complement else 0))
-            else:                                 # A & B, A & ~B, or under a complement ~A & ~B
-                pending.append((int(right[node]), complement or kind[node] == K.DIFFERENCE))
-                pending.append((int(left[node]), complement))
-        records[index, :len(found)] = found
-        leaves = np.asarray(found, np.int64) & (K.LITERAL_COMPLEMENT - 1)
-        records[index, K.MAX_COMPOUND_LITERALS:K.MAX_COMPOUND_LITERALS + len(found)] = left[leaves]
-        walk_entry[root] = index
-    return records
-
-
-def _set_roots(kind, neg, group, left, right, parent, height, min_size=2, compound=None):
-    """Per node, whether it roots a maximal subtree of unions of members, positive leaves or
-    compounds (a set, `engine.leaf_events`), with at least `min_size` members; co-bounded
-    (positive-form) unions and group nodes are not set members."""
-    compound = np.zeros(len(kind), bool) if compound is None else compound
-    member = ((kind == K.LEAF) & ~neg) | compound
-    pure = member.copy()
-    plain_union = (kind == K.UNION) & ~neg & ~group
-    members = member.astype(np.int64)
-    for at in _levels_bottom_up(kind, height):
-        pure[at] = compound[at] | (plain_union[at] & pure[left[at]] & pure[right[at]])
-        members[at] = np.where(compound[at], 1, members[left[at]] + members[right[at]])
-    parent_pure = np.zeros(len(kind), bool)
-    has_parent = parent >= 0
-    parent_pure[has_parent] = pure[parent[has_parent]]
-    return pure & ~member & ~parent_pure & (members >= min_size)
-
-
-def _prim_start(num_prims, n_real, owner, kind, left) -> np.ndarray:
-    """(leaf node, set root or NO_LEAF) per primitive: the set a ray starting on the
-    primitive's surface may start inside a member of (`owner`: per node, the set it is a
-    member of, as `_set_owners` gives it). A compound's literals are no members (a cut by a
-    union, A - (B | C), has literals under a union too): their set cannot take a hint from
-    them. Nodes from `n_real` on are the virtual root's (no primitive of their own)."""
-    out = np.full((max(num_prims, 1), 2), K.NO_LEAF, np.uint32)
-    leaves = np.flatnonzero(kind[:n_real] == K.LEAF)
-    out[left[leaves], 0] = leaves
-    member = leaves[owner[leaves] >= 0]
-    out[left[member], 1] = owner[member]
-    return out
-
-
-def _set_owners(sets, compound, kind, left, right) -> np.ndarray:
-    """Per node, the set root it is a member (a leaf or a compound) of; -1 for the others."""
-    owner = np.full(len(kind), -1, np.int64)
-    frontier = np.flatnonzero(sets)
-    roots = frontier
-    while frontier.size:
-        children = np.concatenate([left[frontier], right[frontier]])
-        roots = np.concatenate([roots, roots])
-        ends = (kind[children] == K.LEAF) | compound[children]
-        owner[children[ends]] = roots[ends]
-        frontier, roots = children[~ends], roots[~ends]
-    return owner
-
-
-def _wide_sets(sets, kind, left, right, lower, upper, box, compound) -> tuple[np.ndarray, np.ndarray, int]:
-    """Each set's binary subtree collapsed into 4-wide nodes for the set walk (fewer, wider
-    visits: a node's four boxes are tested in one step from one record). A node takes its two
-    children, then twice splits its inner child of largest box area into that child's two
-    children (while it has one). Built level by level for all sets at once. Returns the records
-    (layout.SET_NODE_FLOATS each), the walk entry of every node, and the most entries the
-    walk's stack can hold at once."""
-    walk_entry = np.arange(len(kind), dtype=np.uint32)
-    extent = np.nan_to_num(upper - lower, nan=0.0, posinf=1e30, neginf=0.0).clip(0.0, 1e30)
-    area = extent[:, 0] * extent[:, 1] + extent[:, 1] * extent[:, 2] + extent[:, 2] * extent[:, 0]
-    inner_node = (kind != K.LEAF) & ~compound      # a set's own unions; its members are leaves and compounds
-    id_of = np.full(len(kind), -1, np.int64)
-    levels = []                           # per level: its 4-wide nodes' children (tree ids, -1: none)
-    frontier, count = np.flatnonzero(sets), 0
-    while frontier.size:
-        id_of[frontier] = count + np.arange(frontier.size)
-        count += frontier.size
-        children = np.full((frontier.size, 4), -1, np.int64)
-        children[:, 0], children[:, 1] = left[frontier], right[frontier]
-        rows = np.arange(frontier.size)
-        for used in (2, 3):
-            candidates = children[:, :used]
-            splittable = (candidates >= 0) & inner_node[np.maximum(candidates, 0)]
-            widest = np.argmax(np.where(splittable, area[candidates], -1.0), axis=1)
-            split = splittable[rows, widest]
-            node = candidates[rows, widest]
-            children[split, widest[split]] = left[node[split]]
-            children[split, used] = right[node[split]]
-        levels.append(children)
-        present = children >= 0
-        frontier = children[present & inner_node[np.maximum(children, 0)]]
-    walk_entry[sets] = K.SET_NODE_TAG | id_of[sets].astype(np.uint32)
-    children = np.concatenate(levels) if levels else np.full((1, 4), -1, np.int64)
-    present = children >= 0
-    safe = np.maximum(children, 0)
-    wide = present & inner_node[safe]
-    refs = np.where(wide, K.SET_NODE_TAG | id_of[safe], np.where(present, children, 0xFFFFFFFF)).astype(np.uint32)
-    boxes = np.concatenate([box[safe][..., 0:3], box[safe][..., 4:7]], axis=-1).astype(np.float32)
-    boxes[~present] = np.nan
-    # A visit pushes all but one of the children it opens, and goes on into one of them: the
-    # most entries waiting at once is the largest sum of (children - 1) down a path. Deeper
-    # levels have larger ids, so one backward pass over the levels sees children first.
-    pending = np.zeros(len(children), np.int64)
-    start = count
-    for level in reversed(levels):
-        start -= len(level)
-        here = slice(start, start + len(level))
-        below = np.where(wide[here], pending[id_of[safe[here]]], 0).max(axis=1)
-        pending[here] = present[here].sum(axis=1) - 1 + below
-    records = np.zeros((len(children), K.SET_NODE_FLOATS), np.float32)
-    records[:, :4] = refs.view(np.float32)
-    records[:, 4:28] = boxes.reshape(-1, 24)
-    return records, walk_entry, int(pending.max(initial=0)) if levels else 0
 
 
 # The set walk's stack holds at least this many entries. Its deepest run of waiting entries

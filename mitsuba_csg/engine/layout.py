@@ -16,7 +16,7 @@ Node flags word (one per flat-tree node)::
     bit  6    GROUP: a union node that joins separate solids (`engine.grouping`): its next
               event is the nearer of its children's, whatever their classes
     bit  7    SET: the root of a subtree of unions of positive leaves, searched as one n-ary
-              node (`engine.leaf_events`)
+              node (`engine.set_walk`)
     bits 8-10 of an operation, its left child's CHILD_NEGATIVE, CHILD_LEAF and CHILD_SET bits
               (the child's own bits 2, kind == LEAF and 7), so that GoTo needs no child record
     bits 11-13 the same of its right child
@@ -54,14 +54,17 @@ KIND_NAMES = {UNION: "union", INTERSECTION: "intersection", DIFFERENCE: "differe
 SPHERE, BOX, CONE, TORUS, CONVEX, MESH, QUADRIC = 0, 1, 2, 3, 4, 5, 6
 SHAPE_CODES = {"sphere": SPHERE, "box": BOX, "cone": CONE, "torus": TORUS, "convex": CONVEX, "mesh": MESH,
                "quadric": QUADRIC}
-# Shapes whose inside along a ray may be several intervals.
+# Shapes whose inside along a ray may be several intervals, and those whose inside is one.
 NON_CONVEX_SHAPES = (TORUS, MESH, QUADRIC)
+CONVEX_SHAPES = tuple(code for code in SHAPE_CODES.values() if code not in NON_CONVEX_SHAPES)
 SHAPE_NAMES = {code: name for name, code in SHAPE_CODES.items()}
 
 # ---- Event classes ----
 ENTER, EXIT, MISS = 0, 1, 2
 
-NO_LEAF = 0xFFFFFFFF        # leaf node / primitive index of a miss
+# The absent index, wherever a word holds a node, leaf, primitive, tree entry or literal:
+# the leaf and primitive of a miss, no set, no neighbour tree, an unused literal slot.
+NO_INDEX = 0xFFFFFFFF
 
 # ---- Node flags ----
 KIND_MASK = 0x3
@@ -162,16 +165,15 @@ def with_class(info, cls, flip):
 # ---- Primitive record ----
 PRIM_RECORD_FLOATS = 16
 NODE_WIDE_FLOATS = 16      # engine.device.node_with_child_boxes
-SET_NODE_FLOATS = 32       # engine.device: a 4-wide node of a set
+SET_NODE_FLOATS = 32       # engine.set_layout: a 4-wide node of a set
 SET_NODE_TAG = 1 << 31     # a set walk's reference to a 4-wide node (else a member's node id)
 
-# A compound set member (engine.device, engine.leaf_events.compound_hit): an intersection of
+# A compound set member (engine.set_layout, engine.leaf_events.compound_hit): an intersection of
 # convex leaves and complements of convex leaves, listed in a record of literal words, then
 # the literals' primitives (one word each).
 MAX_COMPOUND_LITERALS = 4
 COMPOUND_RECORD_WORDS = 2 * MAX_COMPOUND_LITERALS
 LITERAL_COMPLEMENT = 1 << 31   # the literal is the leaf's complement (the leaf node id below)
-NO_LITERAL = 0xFFFFFFFF
 PRIM_ROWS, PRIM_PARAMS, PRIM_PLANE_START, PRIM_COUNT_SHAPE = 0, 12, 14, 15
 SHAPE_SHIFT = 16
 PLANE_COUNT_MASK = 0xFFFF

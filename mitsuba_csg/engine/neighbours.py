@@ -1,6 +1,6 @@
 """Neighbour trees: where a set walk goes on from inside, at the exit of a member.
 
-A set walk (`engine.leaf_events.next_event`) is inside its union at a member M's exit in two
+A set walk (`engine.set_walk.next_event`) is inside its union at a member M's exit in two
 cases: a ray that starts on M's surface and leaves into M (a bounce off a hole's wall into
 the hole, a hint from the integrators), and the next pass of a chain through overlapping
 members (a ray crossing a Cheese's connected holes). What the pass asks there is which
@@ -42,8 +42,6 @@ NEIGHBOUR_REACH = 1.0 / 64.0
 # about as many visits, and a tree stays within 21 records.
 MAX_NEIGHBOURS = 64
 
-NO_ENTRY = 0xFFFFFFFF     # no neighbour tree: walk from the set's root
-
 # A set's cells are about this fraction of its members' median box size across: smaller
 # cells hold fewer members each, and cost more memory.
 CELL_PER_MEMBER = 0.5
@@ -57,7 +55,7 @@ def neighbour_trees(owner, box, balls, convex, first_record):
     """(records, entry): 4-wide set-node records (layout.SET_NODE_FLOATS each, numbered from
     `first_record`) holding each set member's neighbour tree, and per node where a pass from
     inside at that member's exit starts: SET_NODE_TAG | a record, a lone neighbour's node
-    id, or NO_ENTRY.
+    id, or NO_INDEX.
 
     `owner` gives per node the set it is a member of (a leaf or a compound; -1 for none),
     `box` holds the nodes' padded
@@ -65,7 +63,7 @@ def neighbour_trees(owner, box, balls, convex, first_record):
     radius) that holds a sphere leaf (NaN radius for other nodes), `convex` the members whose
     inside along a ray is one interval: a convex member is not its own neighbour, since a
     ray that leaves it does not enter it again."""
-    entry = np.full(len(owner), NO_ENTRY, np.uint32)
+    entry = np.full(len(owner), K.NO_INDEX, np.uint32)
     lower, upper = box[:, 0:3], box[:, 4:7]
     pairs = [_neighbour_pairs(members, lower, upper, balls) for members in _members_by_set(owner)]
     of = np.concatenate([p[0] for p in pairs]) if pairs else np.zeros(0, np.int64)    # each pair's member
@@ -84,7 +82,7 @@ def neighbour_trees(owner, box, balls, convex, first_record):
 def _empty_record():
     """A 4-wide record with no children: a pass that starts there opens nothing."""
     empty = np.full((1, K.SET_NODE_FLOATS), np.nan, np.float32)
-    empty[0, :4] = np.full(4, K.NO_LEAF, np.uint32).view(np.float32)
+    empty[0, :4] = np.full(4, K.NO_INDEX, np.uint32).view(np.float32)
     return empty
 
 
@@ -173,7 +171,7 @@ def _trees(owner, near, lower, upper, first_record):
         key = np.where(done, -1, group * (len(group) + 1) + chunk)
         parents, index = np.unique(key[~done], return_inverse=True)
         level = np.full((len(parents), K.SET_NODE_FLOATS), np.nan, np.float32)
-        words = np.full((len(parents), 4), K.NO_LEAF, np.uint32)
+        words = np.full((len(parents), 4), K.NO_INDEX, np.uint32)
         words[index, pos[~done] % 4] = refs[~done]
         level[:, :4] = words.view(np.float32)
         slots = (pos[~done] % 4)[:, None] * 6 + np.arange(4, 10)[None, :]
@@ -191,19 +189,19 @@ def _trees(owner, near, lower, upper, first_record):
         lo, hi = np.concatenate([lo[done], p_lo]), np.concatenate([hi[done], p_hi])
         again = np.argsort(group, kind="stable")
         group, refs, lo, hi = group[again], refs[again], lo[again], hi[again]
-    roots = np.full(len(owners), NO_ENTRY, np.uint32)
+    roots = np.full(len(owners), K.NO_INDEX, np.uint32)
     roots[group] = refs
     stacked = np.concatenate(records) if records else np.zeros((0, K.SET_NODE_FLOATS), np.float32)
     return stacked, roots
 
 
-def cell_grids(owner, box, balls, first_record, first_cell, min_members=2):
+def cell_grids(owner, box, balls, first_record, min_members=2):
     """(records, grids, cells, grid_roots): for each set of `owner` (as in `neighbour_trees`),
     a uniform grid over its members' boxes widened by NEIGHBOUR_REACH, each cell with a 4-wide
     tree over the members whose boxes (and, for spheres, balls) come within the reach of the
     cell. `records`: the trees (numbered from `first_record`; the first has no children, the
     entry of an empty cell); `grids`: GRID_WORDS uint32 words per grid; `cells`: the entry of
-    each cell, numbered from `first_cell` (a record, a lone member's node id, or NO_ENTRY where
+    each cell (a record, a lone member's node id, or NO_INDEX where
     more than MAX_NEIGHBOURS members crowd the cell: its point walks from the set's root);
     `grid_roots`: the set root of each grid."""
     lower, upper = box[:, 0:3], box[:, 4:7]
@@ -250,7 +248,7 @@ def cell_grids(owner, box, balls, first_record, first_cell, min_members=2):
         words = np.zeros(GRID_WORDS, np.uint32)
         words[0:4] = np.array([*g_lo, 1.0 / edge], np.float32).view(np.uint32)
         words[4:7] = res
-        words[7] = first_cell + count
+        words[7] = count
         grids.append(words)
         roots.append(owner[members[0]])
         count += int(res.prod())
@@ -258,7 +256,7 @@ def cell_grids(owner, box, balls, first_record, first_cell, min_members=2):
         return np.zeros((0, K.SET_NODE_FLOATS), np.float32), np.zeros((0, GRID_WORDS), np.uint32), \
             np.zeros(0, np.uint32), np.zeros(0, np.int64)
     cells = np.full(count, K.SET_NODE_TAG | first_record, np.uint32)     # empty cells: the empty record
-    cells[np.concatenate(crowded)] = NO_ENTRY
+    cells[np.concatenate(crowded)] = K.NO_INDEX
     of, near = np.concatenate(cell_of), np.concatenate(member_of)
     records, tree_roots = _trees(of, near, lower, upper, first_record + 1)
     cells[np.unique(of)] = tree_roots

@@ -349,7 +349,7 @@ def _general_form(t: _Tree, root: int):
 def _merge_subtracted_sets(t: _Tree, root: int, prim_lower, prim_upper) -> int:
     """Rewrite chains (((A - B1) - B2) - ...) - Bk, where the B are unions of leaves, as
     A - B with B one SAH union of all their leaves: the kernel searches a union of leaves as
-    one n-ary set (`engine.leaf_events`), so one set of all the holes costs one BVH query
+    one n-ary set (`engine.set_walk`), so one set of all the holes costs one BVH query
     where k sets cost k. Returns the number of chains merged."""
     pure = {}
     for j in _all_postorder(t, root):

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import drjit as dr
 
-from .automaton import _box_hit
+from .leaf_events import box_meets
 from .device import opaque
 
 # Origin cells per axis of the root box (2^4) and direction cells per axis of the octahedral
@@ -62,7 +62,7 @@ def sort_keys(b, o, d):
 def root_box_mask(b, tree, o, inv_d, tmin, tmax, active):
     """Rays (scene frame) that meet the root box within [tmin, tmax]: the only ones with work."""
     root = opaque(tree, b.UInt32, tree.root)   # opaque: another model, the same kernel
-    return b.Bool(active) & _box_hit(b, tree, root, o, inv_d, tmin, tmax, True)
+    return b.Bool(active) & box_meets(tree, b.SceneRay(o=o, inv_d=inv_d, tmax=tmax), root, tmin)
 
 
 def coherent_order(b, key, mask):

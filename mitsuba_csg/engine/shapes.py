@@ -220,7 +220,6 @@ def _convex(b, o, d, param, plane_buf, start, count):
 
 # ---- Mesh: ordered BVH walk, watertight triangle test (Woop, Benthin and Wald 2013) ----
 
-_NO_NODE = 0xFFFFFFFF
 
 
 def _pick(v, k):
@@ -281,7 +280,7 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
     # their entry distances, wait on the stack (farther first), and one whose entry lies
     # beyond the nearest crossing found since is dropped when popped.
     root_leaf = K.mesh_ref_is_leaf(root)
-    node = dr.select(root_leaf, _NO_NODE, root)
+    node = dr.select(root_leaf, K.NO_INDEX, root)
     tri = dr.select(root_leaf, K.mesh_tris_first(root), 0)
     tri_end = dr.select(root_leaf, K.mesh_tris_first(root) + K.mesh_tris_count(root), 0)
     stack_ref = dr.alloc_local(b.UInt32, mesh_bvh.STACK_SIZE)
@@ -292,7 +291,7 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
     enter = dr.zeros(b.Bool, width)
     # Loop state is what the walk changes (Dr.Jit would otherwise record the body twice, once
     # to find the ray's numbers unchanged).
-    while dr.hint((node != _NO_NODE) | (tri < tri_end) | (sp > 0), label="csg_mesh_bvh",
+    while dr.hint((node != K.NO_INDEX) | (tri < tri_end) | (sp > 0), label="csg_mesh_bvh",
                   exclude=[o, inv_d, triangles, nodes, skip, start, t_start, kx, ky, kz, sx, sy, sz, ox, oy, oz,
                            slope_scale]):
         # One triangle of the current leaf, or one inner node's two children.
@@ -333,8 +332,8 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
 
         # An inner node: test both children's boxes against [t_start, t]; go on with the
         # nearer one the ray reaches and push the other if it reaches both.
-        expanding = ~testing & (node != _NO_NODE)
-        next_ref = dr.full(b.UInt32, _NO_NODE, width)
+        expanding = ~testing & (node != K.NO_INDEX)
+        next_ref = dr.full(b.UInt32, K.NO_INDEX, width)
         if dr.hint(expanding, exclude=[o, inv_d, nodes, t_start]):
             row = node * 4
             lower_l, upper_l = dr.gather(b.Array4f, nodes, row, expanding), dr.gather(b.Array4f, nodes, row + 1, expanding)
@@ -350,20 +349,20 @@ def _mesh(b, o, d, param, plane_buf, start, mesh, t_start):
             stack_ref.write(dr.select(right_first, ref_l, ref_r), sp, both)
             stack_near.write(dr.select(right_first, near_l, near_r), sp, both)
             sp = dr.select(both, sp + 1, sp)
-            next_ref = dr.select(hit_l | hit_r, dr.select(right_first, ref_r, ref_l), _NO_NODE)
-            node = dr.full(b.UInt32, _NO_NODE, width)
+            next_ref = dr.select(hit_l | hit_r, dr.select(right_first, ref_r, ref_l), K.NO_INDEX)
+            node = dr.full(b.UInt32, K.NO_INDEX, width)
 
         # Idle after this step: pop the nearest waiting box, unless it lies beyond t.
-        pop = (next_ref == _NO_NODE) & (node == _NO_NODE) & (tri >= tri_end) & (sp > 0)
+        pop = (next_ref == K.NO_INDEX) & (node == K.NO_INDEX) & (tri >= tri_end) & (sp > 0)
         top = dr.select(pop, sp - 1, 0)                 # an index in range on every lane
         popped_ref, popped_near = stack_ref.read(top, pop), stack_near.read(top, pop)
         sp = dr.select(pop, sp - 1, sp)
         next_ref = dr.select(pop & (popped_near <= t), popped_ref, next_ref)
         # Take the next ref: a leaf's triangles are tested next, an inner node is expanded.
-        leaf = (next_ref != _NO_NODE) & K.mesh_ref_is_leaf(next_ref)
+        leaf = (next_ref != K.NO_INDEX) & K.mesh_ref_is_leaf(next_ref)
         tri = dr.select(leaf, K.mesh_tris_first(next_ref), tri)
         tri_end = dr.select(leaf, K.mesh_tris_first(next_ref) + K.mesh_tris_count(next_ref), tri_end)
-        node = dr.select(leaf, _NO_NODE, dr.select(next_ref != _NO_NODE, next_ref, node))
+        node = dr.select(leaf, K.NO_INDEX, dr.select(next_ref != K.NO_INDEX, next_ref, node))
     found = dr.isfinite(t)
     plane = dr.gather(b.Array4f, plane_buf, start + face, found)
     cls = dr.select(found, dr.select(enter, b.UInt32(ENTER), b.UInt32(EXIT)), b.UInt32(MISS))

@@ -2,9 +2,9 @@
 
 Every primitive is described to the kernel as a *canonical* solid (unit sphere, cube
 [-1,1]^3, capped cone with |z| <= 1, capped quadric of revolution rho^2 <= a z^2 + b z + c with
-|z| <= 1, torus of major radius 1, convex polyhedron) plus the
+|z| <= 1, torus of major radius 1, convex polyhedron; meshes are their own) plus the
 matrix that maps the canonical solid to the primitive's local frame. Sizes thus live in
-matrices, and the kernel intersects six shapes only. All sizes are full lengths (as in
+matrices, and the kernel intersects only the canonical shapes of `engine.layout.SHAPE_CODES`. All sizes are full lengths (as in
 GDML and OpenSCAD); `radius`, `apothem` and `major_radius` are radii.
 """
 from __future__ import annotations
