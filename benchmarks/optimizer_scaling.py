@@ -23,9 +23,7 @@ def main(argv=None):
 
     import mitsuba_csg as csg
     from mitsuba_csg.scenes import city
-    from mitsuba_csg.engine.device import upload
-    from mitsuba_csg.engine.backend import default_backend
-    from mitsuba_csg.queries import Prepared, rays_to_device, trace_rays
+    from mitsuba_csg.queries import rays_to_device, trace_rays
     from trace_throughput import rays_for
     width, height = (int(v) for v in args.size.split("x"))
     rows = []
@@ -40,7 +38,7 @@ def main(argv=None):
                    nodes_after=stats["nodes_after"], leaves_duplicated=stats["leaves_duplicated"],
                    phases=stats["seconds"])
         if not args.no_trace:
-            prepared = Prepared(opt.flat, upload(opt.flat, default_backend()))
+            prepared = csg.prepare(opt)
             o, d = rays_for(model, width, height)
             O, D = rays_to_device(o, prepared.tree.b), rays_to_device(d, prepared.tree.b)
             dr.eval(O, D)

@@ -7,7 +7,7 @@ import re
 from pathlib import Path
 
 import mitsuba_csg  # noqa: F401  (registers the plugins, selects a variant)
-from mitsuba_csg.plugins import csg_aov, csg_path, csg_prb, csg_prb_projective, csg_shape, csg_volpath
+from mitsuba_csg.plugins import csg_shape, registry
 
 HERE = Path(__file__).resolve().parent
 
@@ -64,8 +64,8 @@ def main():
              "Generated from the plugins' docstrings by `docs/make_plugin_docs.py`. `import mitsuba_csg` "
              "registers them for the current variant (call `mitsuba_csg.register_plugins()` after switching); every "
              "JIT variant works, RGB, mono and spectral (`llvm_*` on any CPU, `cuda_*` on NVIDIA GPUs).", ""]
-    for cls in (csg_shape.CSGShape, csg_path.CSGPathIntegrator, csg_volpath.CSGVolpathIntegrator,
-                csg_aov.CSGAOVIntegrator, csg_prb.CSGPRBIntegrator, csg_prb_projective.CSGPRBProjectiveIntegrator):
+    classes = [csg_shape.CSGShape] + [registry.integrator_class(name) for name in registry.integrator_names()]
+    for cls in classes:
         parts += [to_markdown(cls.__doc__), ""]
     (HERE / "plugins.md").write_text("\n".join(parts))
 

@@ -257,6 +257,11 @@ def _print_summary(summary) -> None:
 COMMANDS = ("render", "info", "convert", "bench", "batch")
 
 
+def _integrator_names() -> tuple[str, ...]:
+    from .plugins.registry import integrator_names
+    return integrator_names()
+
+
 def _global_options(p: argparse.ArgumentParser, default) -> None:
     p.add_argument("--verbose", action="store_true", default=default, help="show tracebacks on errors")
     p.add_argument("--variant", default=default, help="Mitsuba variant (default: llvm_ad_rgb)")
@@ -276,7 +281,8 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--output", default="cheese.exr", help="output OpenEXR file (default: cheese.exr)")
     r.add_argument("--spp", type=_positive_int, default=16, help="samples per pixel (default 16)")
     r.add_argument("--size", type=_size, default=(640, 360), help="WIDTHxHEIGHT (default 640x360)")
-    r.add_argument("--integrator", default="csg_path", choices=["csg_path", "csg_volpath", "csg_aov", "csg_prb"])
+    r.add_argument("--integrator", default="csg_path", choices=_integrator_names(),
+                   help="the csg_* integrator of a model or built-in scene (default csg_path)")
     r.add_argument("--passes", type=_positive_int, default=4, help="render in this many passes (progress)")
     r.add_argument("--png", action="store_true", help="also write a tonemapped sRGB .png preview")
     r.add_argument("--cut", action="append", metavar="AXIS>VALUE",
@@ -315,7 +321,8 @@ def parser() -> argparse.ArgumentParser:
     a.add_argument("--size", type=_size_list, default=None, help="WIDTHxHEIGHT (default 640x360; "
                    "an .xml scene: its own)")
     a.add_argument("--seed", type=int, default=None, help="seed of the job's chunk seeds (default 0)")
-    a.add_argument("--integrator", default=None, choices=["csg_path", "csg_volpath", "csg_aov", "csg_prb"])
+    a.add_argument("--integrator", default=None, choices=_integrator_names(),
+                   help="the csg_* integrator of models and built-in scenes (default csg_path)")
     a.add_argument("--no-png", action="store_true", help="write only the .exr images")
     a.add_argument("--workers", type=_positive_int, default=None,
                    help="Ray workers (default: the cluster's CPUs / --threads)")

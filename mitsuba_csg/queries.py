@@ -15,11 +15,12 @@ import numpy as np
 from .engine import layout as K
 from .engine.automaton import traverse
 from .engine.backend import Backend, default_backend, owned
-from .engine.device import KernelTree, TraversalOptions, node_record, opaque, scene_rays, upload
+from .engine.device import KernelTree, node_record, opaque, scene_rays, upload
 from .engine.hit_geometry import hit_normal
-from .engine.lowering import FlatTree, lower
+from .engine.lowering import FlatTree, lower, with_primitive_transforms
 from .engine.optimize import OptimizedModel
 from .engine.optimize import optimize as optimize_tree
+from .engine.options import TraversalOptions
 from .engine.ray_order import coherent_order, root_box_mask, sort_keys
 from .engine.shapes import inverse_direction
 from .errors import CSGError
@@ -35,6 +36,7 @@ class Prepared:
     """A model lowered and uploaded once, ready to trace many ray batches."""
     flat: FlatTree
     tree: KernelTree
+    max_iterations: int | None = None   # the bound asked for (None: the tree's own, `engine.device.upload`)
     # Frozen `trace_rays` (dr.freeze) per (width, tmin, tmax), oldest first.
     replays: dict = field(default_factory=dict, repr=False, compare=False)
 
@@ -52,7 +54,7 @@ def prepare(model, backend=None, *, optimize: bool = True, positive: bool = Fals
 
     `optimize=False` traces the input tree as written, chains of one operation balanced in
     input order; `positive=True` (with optimize=False) traces its positive form. `traversal`
-    switches the automaton's mechanisms (`engine.device.TraversalOptions`; all on by default).
+    switches the automaton's mechanisms (`engine.options.TraversalOptions`; all on by default).
     """
     if isinstance(model, Prepared):
         return model
@@ -72,7 +74,16 @@ def prepare(model, backend=None, *, optimize: bool = True, positive: bool = Fals
         flat = optimize_tree(model)[0].flat
     else:
         flat = lower(model, positive=positive)
-    return Prepared(flat, upload(flat, backend, max_iterations, traversal))
+    return Prepared(flat, upload(flat, backend, max_iterations, traversal), max_iterations)
+
+
+def moved(prepared: Prepared, to_world: np.ndarray) -> Prepared:
+    """`prepared` with new canonical -> world matrices (P, 4, 4) for its primitives (a
+    differentiable shape's parameter update): the same tree, backend, traversal options and
+    iteration bound, boxes and records built anew from the new transforms."""
+    flat = with_primitive_transforms(prepared.flat, to_world)
+    tree = prepared.tree
+    return Prepared(flat, upload(flat, tree.b, prepared.max_iterations, tree.options), prepared.max_iterations)
 
 
 @dataclass
@@ -80,7 +91,7 @@ class RayHits:
     """Per-ray results on the device (detached Dr.Jit arrays)."""
     t: object          # Float: inf on a miss, NaN where the iteration bound was hit
     normal: object     # Array3f: outward unit normal of the CSG solid
-    prim: object       # UInt32: index into Model.leaves(); 0xFFFFFFFF on a miss
+    prim: object       # UInt32: index into Model.leaves(); NO_INDEX (0xFFFFFFFF) on a miss
     entering: object   # Bool: the ray enters the solid at the hit
     finished: object   # Bool: False where the iteration bound stopped the lane
     steps: object      # UInt32: automaton iterations plus set-walk iterations per lane
@@ -100,8 +111,8 @@ def trace_rays(prepared: Prepared, o, d, tmin=0.0, tmax=float("inf"), *, frozen:
     `active` (a Bool per ray, optional) skips the lanes where it is false: they miss at no cost.
 
     `start_prim` (a UInt32 per ray, optional) names the primitive whose surface each ray
-    starts on, as `RayHits.prim` gives it for the hit the ray continues from (NO_LEAF,
-    0xFFFFFFFF, for none): a hint, not a constraint. Hit distances and classes never depend
+    starts on, as `RayHits.prim` gives it for the hit the ray continues from (NO_INDEX,
+    NO_INDEX, 0xFFFFFFFF, for none): a hint, not a constraint. Hit distances and classes never depend
     on it; where the exits of several primitives coincide exactly (coincident faces), which
     of them is reported may. A ray leaving a hole's wall into the hole (a path tracer's
     bounce and shadow rays off a Cheese) then skips the search along its chord through the
@@ -145,11 +156,11 @@ def _trace(tree: KernelTree, o, d, tmin, tmax, active, start_prim) -> RayHits:
     if start_prim is not None:
         start_prim = b.UInt32(dr.detach(start_prim))
     t, leaf, info, finished, steps = traverse(tree, o, d, tmin, tmax, active, start_prim)
-    hit = leaf != K.NO_LEAF
+    hit = leaf != K.NO_INDEX
     _, prim, _, _ = node_record(b, tree, leaf, hit)
     normal = hit_normal(tree, prim, info, o, d, dr.select(hit, t, 0.0), hit)
     t = dr.select(finished, t, dr.nan)
-    return RayHits(t=t, normal=normal, prim=dr.select(hit, prim, K.NO_LEAF),
+    return RayHits(t=t, normal=normal, prim=dr.select(hit, prim, K.NO_INDEX),
                    entering=hit & (K.info_class(info) == K.ENTER), finished=finished, steps=steps, info=info)
 
 
@@ -166,7 +177,7 @@ def _trace_reordered(prepared: Prepared, o, d, tmin, tmax, active, start_prim=No
                          True if active is None else b.Bool(dr.detach(active)))
     order, rank = coherent_order(b, sort_keys(b, scene_o, scene_d), mask)
     misses = RayHits(t=dr.full(b.Float, dr.inf, n), normal=dr.zeros(b.Array3f, n),
-                     prim=dr.full(b.UInt32, K.NO_LEAF, n), entering=dr.zeros(b.Bool, n),
+                     prim=dr.full(b.UInt32, K.NO_INDEX, n), entering=dr.zeros(b.Bool, n),
                      finished=dr.full(b.Bool, True, n), steps=dr.zeros(b.UInt32, n),
                      info=dr.full(b.UInt32, K.MISS, n))
     if dr.width(order) == 0:
@@ -215,7 +226,7 @@ class Hits:
     prim: np.ndarray       # (N,) int64 index into model.leaves(); -1 on a miss
     entering: np.ndarray   # (N,) bool
     unfinished: int        # rays stopped by the iteration bound (their t is NaN)
-    steps: np.ndarray      # (N,) automaton iterations plus set-walk iterations (engine.leaf_events)
+    steps: np.ndarray      # (N,) automaton iterations plus set-walk iterations (engine.set_walk)
 
 
 def _rays(a, what: str) -> np.ndarray:
@@ -269,7 +280,7 @@ def trace(model, origins, directions, tmin: float = 0.0, tmax: float = np.inf, *
                       reorder=reorder)
     dr.eval(hits.t, hits.normal, hits.prim, hits.entering, hits.finished, hits.steps)
     prim = hits.prim.numpy().astype(np.int64)
-    prim[prim == K.NO_LEAF] = -1
+    prim[prim == K.NO_INDEX] = -1
     unfinished = int(np.count_nonzero(~hits.finished.numpy()))
     if unfinished:
         warnings.warn(f"{unfinished} of {len(o)} rays reached the iteration bound "

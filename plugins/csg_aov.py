@@ -4,14 +4,15 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import integrator_guard
 from .csg_common import SceneCSG
+from .registry import integrator
 
 AOV_TYPES = {"depth": 1, "position": 3, "uv": 2, "dp_du": 3, "sh_normal": 3, "prim_index": 1, "shape_index": 1}
 # Channel suffixes as Mitsuba's own `aov` integrator names them.
 _SUFFIXES = {"uv": "UV", "dp_du": "XYZ", "position": "xyz", "sh_normal": "xyz"}
 
 
+@integrator("csg_aov", "buffers", {"Depth": "", "AOV": ""})
 class CSGAOVIntegrator(mi.SamplingIntegrator):
     r"""
     .. _integrator-csg_aov:
@@ -38,9 +39,6 @@ class CSGAOVIntegrator(mi.SamplingIntegrator):
         'integrator': {'type': 'csg_aov', 'aovs': 'dd.y:depth,nn:sh_normal'}
     """
 
-    # Traces csg shapes (plugins/integrator_guard.py refuses integrators without this).
-    traces_csg = True
-
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         spec = props.get("aovs", "dd.y:depth,p:position,nn:sh_normal,prim:prim_index,shape:shape_index")
@@ -66,8 +64,6 @@ class CSGAOVIntegrator(mi.SamplingIntegrator):
         return (self.inner.aov_names() if self.inner else []) + names
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
-        # This class keeps Mitsuba's render binding (integrator_guard.keep_binding): checked here.
-        integrator_guard.check(mi, self, scene)
         csg = SceneCSG(scene)
         if self.inner is not None:
             color, valid, inner_aovs = self.inner.sample(scene, sampler, ray, medium, active)

@@ -4,10 +4,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_csg.engine.device import upload
 from mitsuba_csg.engine.grouping import group_trees
 from mitsuba_csg.engine.hit_geometry import attached_hit, hit_normal, surface_coordinates
-from mitsuba_csg.queries import Prepared, trace_rays
+from mitsuba_csg.engine.layout import NO_INDEX
+from mitsuba_csg.queries import prepare, trace_rays
 
 from . import integrator_guard
 
@@ -24,8 +24,9 @@ def _grouped(prepared: list):
     entry = _GROUP_CACHE.get(key)
     if entry is None:
         grouped = group_trees([p.flat for p in prepared])
-        tree = prepared[0].tree
-        traced = Prepared(grouped.flat, upload(grouped.flat, tree.b, options=tree.options))
+        first = prepared[0]
+        traced = prepare(grouped.flat, first.tree.b, max_iterations=first.max_iterations,
+                         traversal=first.tree.options)
         entry = (list(prepared), traced, mi.UInt32(grouped.solid_of_prim().astype("uint32")),
                  mi.UInt32(grouped.prim_offset.astype("uint32")))
         if len(_GROUP_CACHE) >= _GROUP_CACHE_SIZE:
@@ -157,13 +158,13 @@ class SceneCSG:
         return blocked
 
     def start_of(self, csg_hit, csg_prim, csg_shape):
-        """Per lane, the traced tree's primitive of an `intersect` hit (NO_LEAF off CSG shapes):
+        """Per lane, the traced tree's primitive of an `intersect` hit (NO_INDEX off CSG shapes):
         the `start_prim` of rays that continue from it."""
         _, _, prim_offset = self._traced()
         prim = mi.UInt32(csg_prim)
         if prim_offset is not None:
             prim += dr.gather(mi.UInt32, prim_offset, csg_shape, csg_hit)
-        return dr.select(csg_hit, prim, mi.UInt32(0xFFFFFFFF))
+        return dr.select(csg_hit, prim, mi.UInt32(NO_INDEX))
 
     def _traced(self):
         """(prepared tree, solid of each primitive, first primitive of each solid) to trace:

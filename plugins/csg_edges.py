@@ -705,7 +705,7 @@ def _circle(centre, radius, w, phi):
 
 def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     """(world point, world tangent dx/du, valid) of curves at u in [0, 1), attached to the
-    matrices (m, t) of the curves' leaves; `data` the curves' 8 floats (`Curves.data`)."""
+    matrices (m, t) of the curves' leaves; `data` the curves' DATA_FLOATS floats (`Curves.data`)."""
     phi = dr.two_pi * u
     inv_a = dr.rcp(m_a)
     cam = inv_a @ (camera - t_a)                   # the camera in leaf a's canonical frame

@@ -7,10 +7,11 @@ import mitsuba as mi
 from mitsuba.ad.integrators.common import mis_weight
 
 from mitsuba_csg.engine.device import scene_rays
+from mitsuba_csg.engine.layout import NO_INDEX
 from mitsuba_csg.engine.ray_order import coherent_order, sort_keys
 
-from . import integrator_guard
 from .csg_common import SceneCSG, camera_ray_valid, read_depths, read_hide_emitters
+from .registry import integrator
 
 
 # Depth after which the paths still going on are gathered into fewer lanes (`_may_compact`):
@@ -44,7 +45,7 @@ class Paths:
     @staticmethod
     def begin(ray: mi.Ray3f, active) -> "Paths":
         return Paths(ray, mi.Spectrum(0), mi.Spectrum(1), mi.Float(1), mi.UInt32(0), mi.Bool(active),
-                     dr.zeros(mi.Interaction3f), mi.Float(1.0), mi.Bool(True), mi.UInt32(0xFFFFFFFF))
+                     dr.zeros(mi.Interaction3f), mi.Float(1.0), mi.Bool(True), mi.UInt32(NO_INDEX))
 
 
 def _may_compact(max_depth: int, lanes: int) -> bool:
@@ -69,6 +70,7 @@ def _coherent_lanes(csg: SceneCSG, paths: Paths):
     return dr.gather(mi.UInt32, alive, order)
 
 
+@integrator("csg_path", "path tracing", {"Path": "", "Direct": "with max_depth 2"})
 class CSGPathIntegrator(mi.SamplingIntegrator):
     r"""
     .. _integrator-csg_path:
@@ -111,9 +113,6 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
         'integrator': {'type': 'csg_path', 'max_depth': 8}
     """
 
-    # Traces csg shapes (plugins/integrator_guard.py refuses integrators without this).
-    traces_csg = True
-
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.max_depth, self.rr_depth = read_depths(props, "csg_path")
@@ -123,8 +122,6 @@ class CSGPathIntegrator(mi.SamplingIntegrator):
                medium: mi.Medium = None, active: bool = True):
         if self.max_depth == 0:   # as Mitsuba's path: nothing, not even emitters
             return mi.Spectrum(0), dr.zeros(mi.Bool, dr.width(ray.d)), []
-        # This class keeps Mitsuba's render binding (integrator_guard.keep_binding): checked here.
-        integrator_guard.check(mi, self, scene)
         csg = SceneCSG(scene)
         paths = Paths.begin(mi.Ray3f(dr.detach(ray)), active)
         if not (csg.csg and _may_compact(self.max_depth, dr.width(ray.d))):

@@ -6,8 +6,10 @@ import mitsuba as mi
 from mitsuba.ad.integrators.common import RBIntegrator, mis_weight
 
 from .csg_common import SceneCSG, camera_ray_valid, check_depth_types
+from .registry import integrator
 
 
+@integrator("csg_prb", "differentiable", {"PRB": ""})
 class CSGPRBIntegrator(RBIntegrator):
     r"""
     .. _integrator-csg_prb:
@@ -43,9 +45,6 @@ class CSGPRBIntegrator(RBIntegrator):
 
         'integrator': {'type': 'csg_prb', 'max_depth': 4}
     """
-
-    # Traces csg shapes (plugins/integrator_guard.py refuses integrators without this).
-    traces_csg = True
 
     def __init__(self, props: mi.Properties):
         check_depth_types(props, "csg_prb")

@@ -14,6 +14,10 @@ from mitsuba_csg.engine.hit_geometry import face_at
 from . import csg_edges
 from .csg_common import SceneCSG
 from .csg_prb import CSGPRBIntegrator
+from .registry import integrator
+
+# max_depth -1 (no bound) as Mitsuba's integrators hold it: an unsigned 32-bit word.
+UNBOUNDED_DEPTH = 0xFFFFFFFF
 
 
 # Camera rays either side of a curve pass it at this fraction of its distance (about 1e-3
@@ -51,6 +55,8 @@ CONTOUR_COSINE = 1e-3
 EXTRAPOLATION = ((1.0, 2.0), (4.0, -1.0))
 
 
+@integrator("csg_prb_projective", "differentiable, with visibility",
+            {"Projective": "", "DirectProjective": "with max_depth 2"})
 class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
     r"""
     .. _integrator-csg_prb_projective:
@@ -569,7 +575,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         directions stay detached (also from BSDF and Mitsuba shape parameters), so that only
         the last point moves with the shapes, along its ray (as csg_prb's interior
         derivatives parametrize paths)."""
-        infinite = self.max_depth == 0xFFFFFFFF
+        infinite = self.max_depth == UNBOUNDED_DEPTH
         deepest = min(DEEPEST_VERTEX, self.max_depth - 2)
         if dr.hint(deepest <= 1, mode="scalar"):
             return self._camera_vertex(scene, sensor, csg, sampler, wavelengths)
@@ -640,7 +646,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         # Aimed from the origin spawn_ray moved off the surface: from p itself the ray would
         # pass the curve that far to one side, which offsets close to it cannot afford.
         ray.d = dr.normalize(target - ray.o)
-        depth = self.max_depth if self.max_depth == 0xFFFFFFFF else self.max_depth - 1
+        depth = self.max_depth if self.max_depth == UNBOUNDED_DEPTH else self.max_depth - 1
         return self._path_radiance(scene, sampler, ray, active, max_depth=depth, hide_first_emitter=True,
                                    lane_depth=lane_depth)
 

@@ -7,11 +7,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_csg.engine.device import upload
-from mitsuba_csg.engine.lowering import with_primitive_transforms
 from mitsuba_csg.engine.optimize import OptimizedModel
 from mitsuba_csg.errors import CSGError
-from mitsuba_csg.queries import Prepared, prepare
+from mitsuba_csg.queries import moved, prepare
 
 from . import model_ref
 
@@ -208,11 +206,9 @@ class CSGShape(mi.Mesh):
         else:
             super().parameters_changed(keys)
             return
-        flat = self.prepared.flat
-        to_world = flat.prim_to_world.copy()
+        to_world = self.prepared.flat.prim_to_world.copy()
         to_world[:, :3, :] = rows
-        flat = with_primitive_transforms(flat, to_world)
-        self.prepared = Prepared(flat, upload(flat, self.prepared.tree.b))
+        self.prepared = moved(self.prepared, to_world)
         super().parameters_changed([])
         self._update_proxy_bounds()
 

@@ -6,8 +6,8 @@ import mitsuba as mi
 
 from mitsuba.ad.integrators.common import mis_weight
 
-from . import integrator_guard
 from .csg_common import SceneCSG, camera_ray_valid, read_depths, read_hide_emitters
+from .registry import integrator
 
 
 def _spectrum_channel(spectrum, channel):
@@ -17,6 +17,7 @@ def _spectrum_channel(spectrum, channel):
     return spectrum[0]
 
 
+@integrator("csg_volpath", "media", {"Volpath": "", "Volumetric": ""})
 class CSGVolpathIntegrator(mi.SamplingIntegrator):
     r"""
     .. _integrator-csg_volpath:
@@ -50,8 +51,6 @@ class CSGVolpathIntegrator(mi.SamplingIntegrator):
         'integrator': {'type': 'csg_volpath', 'max_depth': 16}
     """
 
-    # Traces csg shapes (plugins/integrator_guard.py refuses integrators without this).
-    traces_csg = True
     traces_media = True
 
     def __init__(self, props: mi.Properties):
@@ -64,8 +63,6 @@ class CSGVolpathIntegrator(mi.SamplingIntegrator):
                medium: mi.Medium = None, active: bool = True):
         if dr.hint(self.max_depth == 0, mode="scalar"):
             return mi.Spectrum(0), dr.zeros(mi.Bool, dr.width(ray.d)), []
-        # This class keeps Mitsuba's render binding (integrator_guard.keep_binding): checked here.
-        integrator_guard.check(mi, self, scene)
         csg = SceneCSG(scene, media=True)
         ray = mi.Ray3f(dr.detach(ray))
         L = mi.Spectrum(0)

@@ -9,7 +9,8 @@ base classes (`Integrator.render`, the forward and backward passes, the Python `
 ones) with `check`, so `mi.render(scene)` and `integrator.render(scene, sensor)` alike raise an
 error that names the integrator, the shapes and what to use instead.
 
-Integrators that trace CSG declare it with a class attribute `traces_csg = True`; one that
+Integrators that trace CSG are registered with `registry.integrator`, which marks them with
+a class attribute `traces_csg = True` (an integrator of one's own may set it too); one that
 nests another (`csg_aov`'s colour) is checked for its nested integrator too. A `csg` shape in
 a shape group (instancing) is refused for every integrator: the group's own acceleration
 structure holds Mitsuba's shapes only, so its copies would be invisible.
@@ -19,8 +20,8 @@ and puts back the one it found, kept in a single static slot. A Python wrapper o
 class looks, to the trampoline of a Python integrator, like an override, so such a render
 re-enters the binding, the inner call overwrites that slot, and Mitsuba's handler stays
 installed afterwards: the next Ctrl-C cancels a finished render and never reaches Python.
-Our own `SamplingIntegrator` plugins therefore keep the unwrapped binding (`keep_binding`,
-and they check in `sample`), and for other Python integrators the outermost wrapper puts
+Our own `SamplingIntegrator` plugins therefore keep the unwrapped binding and are checked
+in `sample` instead (`keep_binding`, applied to each at registration), and for other Python integrators the outermost wrapper puts
 Python's handler back once such a nested call has happened.
 """
 from __future__ import annotations
@@ -31,8 +32,7 @@ import threading
 
 from mitsuba_csg.errors import CSGError
 
-CSG_INTEGRATORS = ("csg_path (path tracing), csg_volpath (media), csg_prb (differentiable), csg_prb_projective "
-                   "(differentiable, with visibility) or csg_aov (buffers)")
+from . import registry
 
 
 _BOUND_BASES = {"Integrator", "SamplingIntegrator", "MonteCarloIntegrator", "AdjointIntegrator", "Shape", "Mesh"}
@@ -69,18 +69,9 @@ def grouped_csg_shapes(mi, scene) -> list:
     return found
 
 
-# What to use instead of a Mitsuba integrator, by the words in its class name.
-_COUNTERPARTS = (("Volpath", "csg_volpath"), ("Volumetric", "csg_volpath"),
-                 ("DirectProjective", "csg_prb_projective with max_depth 2"), ("Direct", "csg_path with max_depth 2"),
-                 ("Depth", "csg_aov"), ("AOV", "csg_aov"), ("Projective", "csg_prb_projective"), ("PRB", "csg_prb"),
-                 ("Path", "csg_path"))
-
-
 def counterpart(name: str) -> str:
-    for word, instead in _COUNTERPARTS:
-        if word.lower() in name.lower():
-            return instead
-    return CSG_INTEGRATORS
+    """What to use instead of a Mitsuba integrator, by the words in its class name."""
+    return registry.counterpart(name) or registry.described()
 
 
 def describe(shapes) -> str:
@@ -107,13 +98,13 @@ def check(mi, integrator, scene) -> None:
         if shapes:
             raise CSGError(f"{_name(integrator)}: its nested {_name(inner)} integrator cannot see the "
                            f"{describe(shapes)} (Mitsuba's own integrators trace only Mitsuba's shapes), so the "
-                           f"colour would lack the model; nest {CSG_INTEGRATORS.split(' (')[0]} instead")
+                           f"colour would lack the model; nest {registry.counterpart(_name(inner)) or 'csg_path'} instead")
         return
     shapes = csg_shapes(scene) + grouped_csg_shapes(mi, scene)
     if shapes:
         raise CSGError(f"the {_name(integrator)} integrator cannot see the {describe(shapes)}: Mitsuba's own "
                        f"integrators trace only Mitsuba's shapes and would render the scene without the model. "
-                       f"Use {counterpart(_name(integrator))} (the csg_* integrators: {CSG_INTEGRATORS}), or "
+                       f"Use {counterpart(_name(integrator))} (the csg_* integrators: {registry.described()}), or "
                        f"render a mesh of the model (mitsuba_csg.to_mesh) with {_name(integrator)}")
 
 
@@ -189,8 +180,16 @@ def install(mi) -> None:
 
 def keep_binding(mi, cls) -> None:
     """Give a Python `SamplingIntegrator` subclass Mitsuba's own `render` binding, so its
-    trampoline sees no override and Mitsuba's Ctrl-C handling works as for its own integrators.
-    Such a class calls `check` itself (in `sample`)."""
+    trampoline sees no override and Mitsuba's Ctrl-C handling works as for its own integrators,
+    and check the scene in its `sample` instead (once per render pass, as it is traced)."""
     if "render" not in cls.__dict__:
         method = mi.Integrator.__dict__["render"]
         cls.render = getattr(method, "__wrapped__", method)
+    sample = cls.__dict__.get("sample")
+    if sample is not None and not getattr(sample, "_csg_guard", False):
+        @functools.wraps(sample)
+        def checked(self, scene, *args, **kwargs):
+            check(mi, self, scene)
+            return sample(self, scene, *args, **kwargs)
+        checked._csg_guard = True
+        cls.sample = checked

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CSGError
+from ..plugins.registry import integrator_names
 from ..scenes import NAMED as BUILTIN_SCENES
 
-INTEGRATORS = ("csg_path", "csg_volpath", "csg_aov", "csg_prb")
 DEFAULT_SPP = 16
 DEFAULT_CHUNK_SPP = 8
 DEFAULT_SIZE = (640, 360)
@@ -238,8 +238,9 @@ def job_from_fields(fields: dict, base: Path, where: str) -> Job:
     integrator = fields.get("integrator", "csg_path")
     if "integrator" in fields and is_xml:
         raise CSGError(f"{where}.integrator: an .xml scene names its own integrator")
-    if integrator not in INTEGRATORS:
-        fail("integrator", " or ".join(INTEGRATORS))
+    names = integrator_names()
+    if integrator not in names:
+        fail("integrator", " or ".join(names))
     camera = fields.get("camera")
     if camera is not None:
         if not isinstance(camera, dict) or not {"origin", "target"} <= set(camera) \
