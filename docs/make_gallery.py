@@ -19,7 +19,7 @@ import mitsuba_csg as csg
 from mitsuba_csg import scenes as generators
 from mitsuba_csg import viewing
 from mitsuba_csg.scene_setup import model_scene_dict, scene_dict
-from mitsuba_csg.formats import openscad_tool
+from mitsuba_csg.formats.openscad import tool as openscad_tool
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent

@@ -384,7 +384,7 @@ def test_text_is_the_outline_openscad_draws():
 
 
 def test_text_without_openscad_says_how_to_install(monkeypatch):
-    from mitsuba_csg.formats import openscad_tool
+    from mitsuba_csg.formats.openscad import tool as openscad_tool
     monkeypatch.setenv("MITSUBA_CSG_OPENSCAD", "/nonexistent/openscad")
     monkeypatch.setattr(openscad_tool, "_TEXT_CACHE", {})
     with pytest.raises(FormatError, match=r"line 1, column 28: text\(\) needs OpenSCAD .* apt-get install openscad"):
@@ -492,10 +492,10 @@ def test_bounds_on_depth_and_size(monkeypatch, tmp_path):
     m = load("multmatrix([[1,0,0,1],[0,1,0,0],[0,0,1,0],[0,0,0,1]]) {" * deep + "sphere(1);" + "}" * deep)
     lo, hi = m.bounds()
     np.testing.assert_allclose(lo, [deep - 1, -1, -1], atol=1e-6)
-    monkeypatch.setattr(openscad, "MAX_DEPTH", 100)
+    monkeypatch.setattr(openscad.limits, "MAX_DEPTH", 100)
     with pytest.raises(FormatError, match="nested more than 100 deep"):
         load("group() {" * 200 + "sphere(1);" + "}" * 200)
-    monkeypatch.setattr(openscad, "MAX_FILE_BYTES", 100)
+    monkeypatch.setattr(openscad.limits, "MAX_FILE_BYTES", 100)
     with pytest.raises(FormatError, match="larger than the limit"):
         load("group() {" * 20 + "}" * 20)
     path = tmp_path / "big.csg"

@@ -15,7 +15,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from ..errors import CSGError
+from ...errors import CSGError
 
 TIMEOUT_S = 300
 INSTALL_HINT = "install OpenSCAD (Debian: apt-get install openscad)"
@@ -74,8 +74,8 @@ def text_outline(call: str, what: str):
     if call in _TEXT_CACHE:
         return _TEXT_CACHE[call]
     import manifold3d as m3
-    from ..model.mesh import weld
-    from .mesh_import import _read_stl
+    from ...model.mesh import weld
+    from ..mesh_import import _read_stl
     if executable() is None:
         raise OpenSCADMissing(f"{what}: text() needs OpenSCAD to draw its glyphs, and it is not installed; "
                               f"{INSTALL_HINT}, or load with on_unsupported='skip'")

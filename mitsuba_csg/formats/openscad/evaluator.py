@@ -1,79 +1,22 @@
-"""OpenSCAD `.csg` files (what `openscad -o model.csg model.scad` writes) -> a CSG model.
-
-    group() {
-        difference() {
-            cube(size = [10, 10, 10], center = true);
-            sphere($fn = 0, $fa = 12, $fs = 2, r = 6);
-        }
-        color([1, 0, 0, 1]) multmatrix([[1, 0, 0, 8], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]) {
-            cylinder(h = 4, r1 = 2, r2 = 0, center = false);
-        }
-    }
-
-Supported nodes: `group`, `union`, `render` (implicit unions), `difference`, `intersection`,
-`multmatrix(m)` (4x4 or 3x4 affine), `color(c, alpha)` (a material named `color_R_G_B_A`,
-or the colour's name for `color("red")`), `cube(size, center)`, `sphere(r | d)`,
-`cylinder(h, r1, r2 | r | d | d1 | d2, center)` (cones and r = 0 ends included),
-`polyhedron(points, faces)` (a convex polyhedron when it is one, otherwise a closed mesh
-leaf), and 2D outlines extruded: `square`, `circle` (with OpenSCAD's `$fn`/`$fa`/`$fs`
-fragments), `polygon(points, paths)`, their 2D unions, differences, intersections and
-placements, under `linear_extrude(height, center, twist, slices, scale)` or
-`rotate_extrude(angle)` (an outline wholly at x <= 0 sweeps as its mirror; one across the axis
-is dropped with a warning, as OpenSCAD reports it and renders the rest), as mesh leaves
-(`formats.openscad_2d`); `offset(r | delta, chamfer)` (Clipper's joins, as OpenSCAD) and
-`resize(newsize, auto)` (OpenSCAD's scale rule, measured on our exact solid); `projection(cut)`
-(the shadow, or the section at z = 0, of the faceted children); `text()`, whose
-glyphs OpenSCAD itself draws where it is installed (`formats.openscad_tool`); `hull()` and
-`minkowski()` of OpenSCAD's faceted solids: convex polyhedra from the facet points of
-unions, placements and primitives, and otherwise (differences, extrusions, non-convex
-operands) manifold3d's hull and Minkowski sum of the faceted subtree, a mesh leaf. Malformed
-polyhedra (open, inconsistently oriented, bad indices) are dropped with a warning, as OpenSCAD
-drops them. `.scad` sources are evaluated by OpenSCAD first (`load_scad`). The modifiers `#` (highlight)
-and `!` (root: that subtree alone is the model, as in OpenSCAD) keep their subtree; `%`
-(background) and `*` (disabled) drop it. Spheres and cylinders are the exact analytic solids,
-except where `$fn` is set explicitly to at most FACETED_FN (16): a `cylinder(r = 3, h = 2,
-$fn = 6)` is a nut trap, the hexagonal prism OpenSCAD builds (`facets="exact"` or
-`"openscad"` makes every one round or OpenSCAD's polygon); a 2D circle is OpenSCAD's polygon,
-as OpenSCAD renders its extrusions. A twisted extrusion's side quads may be split along the other diagonal than
-the OpenSCAD version at hand chooses.
-
-Semantics follow OpenSCAD: a cube has its corner at the origin unless `center = true`; a
-cylinder spans z in [0, h] unless centred; degenerate solids (a size, radius or height <= 0,
-a singular `multmatrix`) produce nothing, with an `OpenSCADWarning`. "Nothing" is handled as
-OpenSCAD does: a difference whose first operand is empty is empty, an intersection with an
-empty operand is empty, a node with no geometric children at all (`group();`) is not an
-operand. A model that ends up empty is a `FormatError`.
-
-Files are untrusted input: every problem is a `FormatError` (a `ModelError`) whose message
-starts with the file, line and column, e.g. `model.csg: line 3, column 5: sphere: r must be a
-finite number, got inf`. Unsupported nodes (`import`, `surface`, `roof`, `fill`) are
-refused by name, or skipped with a warning when `on_unsupported="skip"`.
-File size, statement count and nesting depth are bounded; parsing and evaluation use
-explicit stacks, never deep recursion.
-"""
+"""Semantics: statements -> a model, as OpenSCAD evaluates its CSG tree (the package's
+docstring lists what is supported and how)."""
 from __future__ import annotations
 
-import bisect
 import math
-import os
-import re
 import warnings
 
 import numpy as np
 
-from ..errors import ModelError
-from ..model import transform as tf
-from ..model.nodes import DIFFERENCE, INTERSECTION, UNION, Node, Operation
-from ..model.mesh import Mesh, MeshOrientationWarning
-from ..model.polyhedra import CONVEX_LEAF_PLANES, convex_planes
-from ..model.primitives import Box, Cone, ConvexPolyhedron, Sphere
-from . import openscad_2d as flat
-from .reading import FormatError, read_model_bytes
-
-MAX_FILE_BYTES = 256 * 2 ** 20     # refuse larger files before reading them
-MAX_DEPTH = 10_000                 # nesting of statements
-MAX_VALUE_DEPTH = 64               # nesting of vectors inside one argument value
-MAX_STATEMENTS = 10_000_000        # statements in one file
+from ...errors import ModelError
+from ...model import transform as tf
+from ...model.nodes import DIFFERENCE, INTERSECTION, UNION, Node, Operation
+from ...model.mesh import Mesh, MeshOrientationWarning
+from ...model.polyhedra import CONVEX_LEAF_PLANES, convex_planes
+from ...model.primitives import Box, Cone, ConvexPolyhedron, Sphere
+from ..reading import FormatError
+from . import shapes_2d
+from .parser import Range, Statement
+from .source import Source
 
 SUPPORTED_NODES = ("group", "union", "render", "difference", "intersection", "multmatrix", "color",
                    "cube", "sphere", "cylinder", "polyhedron", "square", "circle", "polygon", "linear_extrude",
@@ -86,294 +29,8 @@ UNSUPPORTED_NODES = {
     "surface": "a height-map mesh",
 }
 
-__all__ = ["FormatError", "OpenSCADWarning", "load", "loads", "SUPPORTED_NODES", "UNSUPPORTED_NODES"]
 
-
-class OpenSCADWarning(UserWarning):
-    """Something OpenSCAD also drops or ignores (a degenerate solid, an unknown argument, a skipped node)."""
-
-
-# ---- Text positions ----
-
-class _Source:
-    """The file name and text, turning offsets into 'line L, column C' for messages."""
-
-    def __init__(self, name: str, text: str):
-        self.name, self.text = name, text
-        self._line_starts = None
-
-    def where(self, pos: int) -> str:
-        if self._line_starts is None:
-            self._line_starts = [0] + [m.end() for m in re.finditer("\n", self.text)]
-        line = bisect.bisect_right(self._line_starts, pos)
-        return f"line {line}, column {pos - self._line_starts[line - 1] + 1}"
-
-    def line(self, pos: int) -> int:
-        self.where(0)
-        return bisect.bisect_right(self._line_starts, pos)
-
-    def fail(self, pos: int, message: str):
-        raise FormatError(f"{self.name}: {self.where(pos)}: {message}")
-
-    def warn(self, pos: int, message: str):
-        warnings.warn(f"{self.name}: {self.where(pos)}: {message}", OpenSCADWarning, stacklevel=4)
-
-
-# ---- Tokens ----
-
-_TOKEN = re.compile(r"""
-    (?P<space>[ \t\r\n\f\v]+|//[^\n]*|/\*.*?\*/)
-  | (?P<num>(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?)
-  | (?P<id>[A-Za-z_$][A-Za-z0-9_]*)
-  | (?P<str>"(?:[^"\\\n]|\\.)*")
-  | (?P<punct>[()\[\]{};,=#%!*:+-])
-  | (?P<bad>/\*|"|.)
-""", re.VERBOSE | re.DOTALL)
-_NUMBER_TAIL = re.compile(r"[A-Za-z0-9_.]")
-_ESCAPES = {"n": "\n", "t": "\t", "r": "\r", '"': '"', "\\": "\\"}
-_ESCAPE = re.compile(r"\\(x[0-9A-Fa-f]{2}|u[0-9A-Fa-f]{4}|U[0-9A-Fa-f]{6}|.)", re.DOTALL)
-_KEYWORDS = {"true": True, "false": False, "undef": None, "inf": math.inf, "nan": math.nan}
-EOF = "<end of file>"
-
-
-def _unescape(m: re.Match) -> str:
-    e = m.group(1)
-    if e[0] in "xuU" and len(e) > 1:
-        code = int(e[1:], 16)
-        return chr(code) if code <= 0x10FFFF else "\ufffd"
-    return _ESCAPES.get(e, e)
-
-
-def _tokens(src: _Source):
-    """(kind, value, offset) triples: kind is 'num', 'id', 'str', a punctuation character, or EOF."""
-    text = src.text
-    for m in _TOKEN.finditer(text):
-        kind = m.lastgroup
-        if kind == "space":
-            continue
-        pos, s = m.start(), m.group()
-        if kind == "num":
-            if _NUMBER_TAIL.match(text, m.end()):
-                tail = re.match(r"[A-Za-z0-9_.+-]*", text[m.end():m.end() + 40]).group()
-                src.fail(pos, f"malformed number {s + tail!r}")
-            yield ("num", float(s), pos)
-        elif kind == "id":
-            yield ("id", s, pos)
-        elif kind == "str":
-            yield ("str", _ESCAPE.sub(_unescape, s[1:-1]), pos)
-        elif kind == "punct":
-            yield (s, s, pos)
-        elif s == "/*":
-            src.fail(pos, "unterminated comment /* ... (no closing */)")
-        elif s == '"':
-            src.fail(pos, "unterminated string (no closing \" on this line)")
-        else:
-            src.fail(pos, f"unexpected character {s!r}")
-    yield (EOF, None, len(text))
-
-
-def _describe_token(tok) -> str:
-    kind, value, _ = tok
-    if kind == EOF:
-        return "the end of the file"
-    if kind == "num":
-        return f"the number {value:g}"
-    if kind == "str":
-        return "a string"
-    return repr(value)
-
-
-# ---- Syntax: text -> statements ----
-
-class _Range:
-    __slots__ = ("values",)
-
-    def __init__(self, values):
-        self.values = values
-
-
-class _Statement:
-    """`modifiers name(args) { children }`; name None for a bare `{ ... }` block."""
-
-    __slots__ = ("name", "args", "pos", "modifiers", "children")
-
-    def __init__(self, name, args, pos, modifiers):
-        self.name, self.args, self.pos, self.modifiers, self.children = name, args, pos, modifiers, []
-
-
-class _TokenWindow:
-    """The token stream indexed like a list, read lazily and forgetting what the parser has
-    passed: a file of many tokens costs memory for a few, not for all of them."""
-
-    __slots__ = ("stream", "buffer", "offset", "last")
-
-    def __init__(self, stream):
-        self.stream, self.buffer, self.offset, self.last = stream, [], 0, None
-
-    def __getitem__(self, i: int):
-        k = i - self.offset
-        if k >= 4096:                     # the parser never looks back: drop what it passed
-            del self.buffer[:k]
-            self.offset, k = i, 0
-        while k >= len(self.buffer):
-            tok = next(self.stream, None)
-            if tok is None:
-                tok = self.last           # past the end, the end-of-file token repeats
-            self.last = tok
-            self.buffer.append(tok)
-        return self.buffer[k]
-
-
-class _Parser:
-    def __init__(self, src: _Source):
-        self.src = src
-        self.toks = _TokenWindow(_tokens(src))
-        self.i = 0
-        self.count = 0
-
-    def peek(self):
-        return self.toks[self.i]
-
-    def expect(self, kind: str, what: str):
-        tok = self.toks[self.i]
-        if tok[0] != kind:
-            self.src.fail(tok[2], f"expected {what}, got {_describe_token(tok)}")
-        self.i += 1
-        return tok
-
-    # -- values --
-    def value(self, depth: int = 0):
-        tok = self.toks[self.i]
-        kind, val, pos = tok
-        if kind in ("-", "+"):
-            # Signs in a row are read in a loop (a thousand of them nested Python calls).
-            negative = False
-            while self.toks[self.i][0] in ("-", "+"):
-                negative ^= self.toks[self.i][0] == "-"
-                self.i += 1
-            v = self.value(depth)
-            if isinstance(v, bool) or not isinstance(v, float):
-                self.src.fail(pos, f"unary {kind} needs a number, got {'a vector' if isinstance(v, list) else repr(v)}")
-            return -v if negative else v
-        self.i += 1
-        if kind == "num" or kind == "str":
-            return val
-        if kind == "id":
-            if val in _KEYWORDS:
-                return _KEYWORDS[val]
-            self.src.fail(pos, f"unknown name {val!r} in a value (a .csg file holds only literal values)")
-        if kind == "[":
-            if depth >= MAX_VALUE_DEPTH:
-                self.src.fail(pos, f"vectors nested more than {MAX_VALUE_DEPTH} deep")
-            items = []
-            if self.toks[self.i][0] == "]":
-                self.i += 1
-                return items
-            items.append(self.value(depth + 1))
-            if self.toks[self.i][0] == ":":           # a range [start : step : end]
-                while self.toks[self.i][0] == ":" and len(items) < 3:
-                    self.i += 1
-                    items.append(self.value(depth + 1))
-                self.expect("]", "']' closing a range")
-                return _Range(items)
-            while True:
-                tok = self.toks[self.i]
-                self.i += 1
-                if tok[0] == "]":
-                    return items
-                if tok[0] != ",":
-                    self.src.fail(tok[2], f"expected ',' or ']' in a vector, got {_describe_token(tok)}")
-                if self.toks[self.i][0] == "]":     # trailing comma
-                    self.i += 1
-                    return items
-                items.append(self.value(depth + 1))
-        self.src.fail(pos, f"expected a value, got {_describe_token(tok)}")
-
-    def args(self):
-        args = []
-        self.expect("(", "'('")
-        if self.toks[self.i][0] == ")":
-            self.i += 1
-            return args
-        while True:
-            kind, val, pos = self.toks[self.i]
-            if kind == "id" and self.toks[self.i + 1][0] == "=":
-                self.i += 2
-                args.append((val, self.value(), pos))
-            else:
-                args.append((None, self.value(), pos))
-            tok = self.toks[self.i]
-            self.i += 1
-            if tok[0] == ")":
-                return args
-            if tok[0] != ",":
-                self.src.fail(tok[2], f"expected ',' or ')' after an argument, got {_describe_token(tok)}")
-
-    # -- statements (explicit stack: files may nest deeply) --
-    def parse(self) -> _Statement:
-        root = _Statement(None, [], 0, "")
-        stack = [(root, "root")]      # (statement, 'root' | 'block' | 'single')
-        while True:
-            top, mode = stack[-1]
-            if mode == "single" and top.children:
-                stack.pop()
-                continue
-            kind, val, pos = self.toks[self.i]
-            if kind == "}":
-                if mode != "block":
-                    self.src.fail(pos, "unexpected '}' (no block open)")
-                self.i += 1
-                stack.pop()
-                continue
-            if kind == EOF:
-                if mode == "root":
-                    return root
-                self.src.fail(pos, f"unexpected end of file: the block of "
-                                   f"{top.name or 'a { block'} at {self.src.where(top.pos)} is not closed")
-            modifiers = ""
-            while kind in ("#", "%", "!", "*"):
-                if kind not in modifiers:          # each modifier counts once, however often repeated
-                    modifiers += kind
-                self.i += 1
-                kind, val, pos = self.toks[self.i]
-            # Empty statements count too, so that a file of nothing but ';' is bounded in time.
-            self.count += 1
-            if self.count > MAX_STATEMENTS:
-                self.src.fail(pos, f"more than {MAX_STATEMENTS} statements")
-            if kind == ";":
-                self.i += 1
-                if mode == "single":
-                    stack.pop()
-                continue
-            if len(stack) > MAX_DEPTH:
-                self.src.fail(pos, f"statements nested more than {MAX_DEPTH} deep")
-            if kind == "{":
-                self.i += 1
-                st = _Statement(None, [], pos, modifiers)
-                top.children.append(st)
-                stack.append((st, "block"))
-                continue
-            if kind != "id":
-                self.src.fail(pos, f"expected a statement (a node name such as cube or group), got "
-                                   f"{_describe_token(self.toks[self.i])}")
-            if val in _KEYWORDS:
-                self.src.fail(pos, f"expected a node name, got the keyword {val!r}")
-            self.i += 1
-            st = _Statement(val, self.args(), pos, modifiers)
-            top.children.append(st)
-            kind = self.toks[self.i][0]
-            if kind == ";":
-                self.i += 1
-            elif kind == "{":
-                self.i += 1
-                stack.append((st, "block"))
-            else:
-                stack.append((st, "single"))
-
-
-# ---- Semantics: statements -> model ----
-
-class _Nothing:
+class Nothing:
     """NULL: no geometry at all (not an operand); EMPTY: geometry that is the empty set."""
 
     __slots__ = ("name",)
@@ -385,7 +42,7 @@ class _Nothing:
         return self.name
 
 
-NULL, EMPTY = _Nothing("NULL"), _Nothing("EMPTY")
+NULL, EMPTY = Nothing("NULL"), Nothing("EMPTY")
 
 _POSITIONAL = {
     "cube": ("size", "center"), "sphere": ("r",), "cylinder": ("h", "r1", "r2", "center"),
@@ -416,13 +73,13 @@ FACETED_FN = 16
 FACET_MODES = ("auto", "exact", "openscad")
 
 
-class _Evaluator:
-    def __init__(self, src: _Source, on_unsupported: str, facets: str = "auto"):
+class Evaluator:
+    def __init__(self, src: Source, on_unsupported: str, facets: str = "auto"):
         self.src = src
         self.on_unsupported = on_unsupported
         self.facet_mode = facets
 
-    def arguments(self, st: _Statement) -> dict:
+    def arguments(self, st: Statement) -> dict:
         names = _POSITIONAL.get(st.name, ())
         known = _KNOWN_ARGS[st.name]
         out = {}
@@ -477,14 +134,14 @@ class _Evaluator:
         return np.array(value[:3] + [[0.0, 0.0, 0.0, 1.0]], dtype=np.float64)
 
     # -- nodes --
-    def evaluate(self, root: _Statement):
+    def evaluate(self, root: Statement):
         """Post-order over the statement tree with an explicit stack; returns Node or NULL/EMPTY."""
         target = self.find_root(root)
         if self.on_unsupported == "error":
             self.refuse_unsupported(target)
         return self.subtree_node(target)
 
-    def find_root(self, root: _Statement) -> _Statement:
+    def find_root(self, root: Statement) -> Statement:
         """The first `!` statement in document order outside disabled subtrees, else the file."""
         found = []
         stack = [root]
@@ -531,7 +188,7 @@ class _Evaluator:
     def is_unsupported(self, st) -> bool:
         return st.name is not None and st.name not in _KNOWN_ARGS
 
-    def node(self, st: _Statement, kids: list):
+    def node(self, st: Statement, kids: list):
         name = st.name
         if name is None or name in ("group", "union", "render"):
             if name == "render":
@@ -571,12 +228,12 @@ class _Evaluator:
         if name == "multmatrix":
             m = self.matrix(st, args)
             body = self.combine(st, UNION, kids)
-            if isinstance(body, _Nothing):
+            if isinstance(body, Nothing):
                 return body
             if m is tf.IDENTITY or np.array_equal(m, tf.IDENTITY):
                 return body
-            if isinstance(body, flat.Shape2D):
-                return flat.transform(body, m)
+            if isinstance(body, shapes_2d.Shape2D):
+                return shapes_2d.transform(body, m)
             try:
                 return body.transform(m)
             except ModelError:         # singular: the children collapse to nothing 3D
@@ -584,10 +241,10 @@ class _Evaluator:
                 return EMPTY
         if name == "color":
             body = self.combine(st, UNION, kids)
-            if isinstance(body, flat.Shape2D):
+            if isinstance(body, shapes_2d.Shape2D):
                 return body           # a 2D colour applies to no leaf of ours
             material = self.color(st, args)
-            return body if isinstance(body, _Nothing) or material is None else body.with_material(material)
+            return body if isinstance(body, Nothing) or material is None else body.with_material(material)
         if st.children:
             self.src.warn(st.pos, f"{name}: ignoring its {len(st.children)} child statement(s); a primitive has none")
         try:
@@ -601,36 +258,36 @@ class _Evaluator:
         """`_combine`, and 2D operands combined in 2D. Operands of the other dimension are
         dropped with a warning, as OpenSCAD does: 2D ones among 3D ones, and 3D ones under
         an extrusion (`flat_context`)."""
-        flats = [k for k in kids if isinstance(k, flat.Shape2D)]
-        solids = [k for k in kids if not isinstance(k, (flat.Shape2D, _Nothing))]
+        outlines = [k for k in kids if isinstance(k, shapes_2d.Shape2D)]
+        solids = [k for k in kids if not isinstance(k, (shapes_2d.Shape2D, Nothing))]
         if flat_context and solids:
             self.src.warn(st.pos, f"{st.name}: ignoring its 3D children (it extrudes 2D ones)")
             kids = [k for k in kids if not isinstance(k, Node)]
             solids = []
-            if not flats:
+            if not outlines:
                 return NULL
-        if not flats:
+        if not outlines:
             return _combine(kind, kids)
         if solids:
             self.src.warn(st.pos, f"{st.name or 'group'}: mixing 2D and 3D operands; the 2D ones are ignored")
-            return _combine(kind, [k for k in kids if not isinstance(k, flat.Shape2D)])
+            return _combine(kind, [k for k in kids if not isinstance(k, shapes_2d.Shape2D)])
         kids = [k for k in kids if k is not NULL]
         if kind == INTERSECTION and any(k is EMPTY for k in kids):
             return EMPTY
         if kind == DIFFERENCE and kids[0] is EMPTY:
             return EMPTY
-        return flat.combine(kind, [k for k in kids if k is not EMPTY])
+        return shapes_2d.combine(kind, [k for k in kids if k is not EMPTY])
 
     def offset(self, st, args, body):
-        if isinstance(body, _Nothing):
+        if isinstance(body, Nothing):
             return body
         r = self.number(st, args, "r", None)
         delta = self.number(st, args, "delta", None)
         if r is None and delta is None:
             r = 1.0                                      # OpenSCAD's default: offset(r = 1)
         fn, fs, fa = self.facets(st)
-        shape = flat.offset(body, r, delta if r is None else None, self.flag(st, args, "chamfer"), fn, fs, fa)
-        return EMPTY if flat.is_empty(shape) else shape
+        shape = shapes_2d.offset(body, r, delta if r is None else None, self.flag(st, args, "chamfer"), fn, fs, fa)
+        return EMPTY if shapes_2d.is_empty(shape) else shape
 
     def projection(self, st, args, kids):
         """OpenSCAD's projection(): the outline of the children's shadow on z = 0, or with
@@ -643,16 +300,16 @@ class _Evaluator:
             return EMPTY
         import manifold3d as m3
         solid = pieces[0] if len(pieces) == 1 else m3.Manifold.batch_boolean(pieces, m3.OpType.Add)
-        shape = flat.Shape2D(solid.slice(0.0) if self.flag(st, args, "cut") else solid.project())
-        return EMPTY if flat.is_empty(shape) else shape
+        shape = shapes_2d.Shape2D(solid.slice(0.0) if self.flag(st, args, "cut") else solid.project())
+        return EMPTY if shapes_2d.is_empty(shape) else shape
 
     def resize(self, st, args, body):
         """OpenSCAD's resize: each axis with a new size > 0 scaled to it; with `auto`, the others
         by the scale of the largest new size; the rest kept. The sizes are of our exact solid
         (OpenSCAD measures its facets: round children differ by their sagitta)."""
-        if isinstance(body, _Nothing):
+        if isinstance(body, Nothing):
             return body
-        flat_body = isinstance(body, flat.Shape2D)
+        flat_body = isinstance(body, shapes_2d.Shape2D)
         dims = 2 if flat_body else 3
         newsize = self.sizes(st, args, "newsize", dims)
         auto = self.auto(st, args, dims)
@@ -669,7 +326,7 @@ class _Evaluator:
             self.src.warn(st.pos, "resize: a zero size cannot be resized; OpenSCAD makes nothing of it")
             return EMPTY
         if flat_body:
-            return flat.scaled(body, float(scale[0]), float(scale[1]))
+            return shapes_2d.scaled(body, float(scale[0]), float(scale[1]))
         return body.scale(tuple(float(v) for v in scale))
 
     def sizes(self, st, args, key, dims) -> np.ndarray:
@@ -692,8 +349,8 @@ class _Evaluator:
         self.src.fail(pos, f"resize: auto must be true, false or a vector of them, got {_show(value)}")
 
     def make_text(self, st, args):
-        """text(): the glyph outline OpenSCAD itself draws (`formats.openscad_tool`)."""
-        from . import openscad_tool
+        """text(): the glyph outline OpenSCAD itself draws (`formats.openscad.tool`)."""
+        from . import tool as openscad_tool
         call = "text(" + ", ".join(f"{key} = {_scad(value)}" for key, value, _ in st.args
                                    if key is not None and (key in _KNOWN_ARGS["text"] or key in _FACETS)) + ")"
         try:
@@ -703,16 +360,16 @@ class _Evaluator:
                 self.src.warn(st.pos, f"text: skipped (OpenSCAD, which draws its glyphs, is not installed)")
                 return EMPTY
             raise FormatError(str(e)) from None
-        shape = flat.Shape2D(section)
-        return EMPTY if flat.is_empty(shape) else shape
+        shape = shapes_2d.Shape2D(section)
+        return EMPTY if shapes_2d.is_empty(shape) else shape
 
     # -- hull and minkowski: of OpenSCAD's faceted solids, as OpenSCAD computes them --
     def hull(self, st, kids):
-        operands = [k for k in kids if not isinstance(k, _Nothing)]
+        operands = [k for k in kids if not isinstance(k, Nothing)]
         if not operands:
             return EMPTY            # as OpenSCAD: a hull of nothing is empty geometry, not no operand
-        if all(isinstance(k, flat.Shape2D) for k in operands):
-            return flat.hull_2d(operands)
+        if all(isinstance(k, shapes_2d.Shape2D) for k in operands):
+            return shapes_2d.hull_2d(operands)
         try:
             points = self.subtree_points(st, "hull")
         except _NeedsMesh:
@@ -720,18 +377,18 @@ class _Evaluator:
         return self.convex(st, points)
 
     def minkowski(self, st, kids):
-        operands = [k for k in kids if not isinstance(k, _Nothing)]
+        operands = [k for k in kids if not isinstance(k, Nothing)]
         if not operands:
             return EMPTY
-        if all(isinstance(k, flat.Shape2D) for k in operands):
+        if all(isinstance(k, shapes_2d.Shape2D) for k in operands):
             sets = []
             for k in operands:
                 polygons = k.section.to_polygons()
-                hull = flat.hull_2d([k])
+                hull = shapes_2d.hull_2d([k])
                 if len(polygons) != 1 or abs(hull.section.area() - k.section.area()) > 1e-9 * hull.section.area():
                     self.src.fail(st.pos, "minkowski: of 2D operands that are not convex is not supported")
                 sets.append(np.asarray(polygons[0], dtype=np.float64))
-            return flat.minkowski_2d_convex(sets)
+            return shapes_2d.minkowski_2d_convex(sets)
         live = [c for c in st.children if not _suppressed(c) and c.name not in ("echo", "assert")]
         try:
             sets = [self.subtree_points(c, "minkowski", convex=True) for c in live]
@@ -754,7 +411,7 @@ class _Evaluator:
         return self.convex(st, total)
 
     def convex(self, st, points):
-        solid = flat.convex_solid(points) if len(points) >= 4 else None
+        solid = shapes_2d.convex_solid(points) if len(points) >= 4 else None
         if solid is None:
             self.src.warn(st.pos, f"{st.name}: no volume; OpenSCAD makes nothing of it")
             return EMPTY
@@ -815,7 +472,7 @@ class _Evaluator:
                 results[id(st)] = m3.Manifold.hull_points(pts) if len(pts) >= 4 else None
             elif name == "polyhedron" or not structural:
                 node = self.subtree_node(st)
-                results[id(st)] = None if isinstance(node, (_Nothing, flat.Shape2D)) else _manifold(node)
+                results[id(st)] = None if isinstance(node, (Nothing, shapes_2d.Shape2D)) else _manifold(node)
             elif not kids:
                 results[id(st)] = None
             elif name == "difference":
@@ -866,21 +523,21 @@ class _Evaluator:
         fn, fs, fa = self.facets(st)
         if st.name == "sphere":
             r = self.radius(st, args, "r", "d", 1.0)
-            return flat.sphere_points(r, fn, fs, fa) if r > 0 else np.zeros((0, 3))
+            return shapes_2d.sphere_points(r, fn, fs, fa) if r > 0 else np.zeros((0, 3))
         if st.name == "cylinder":
             h = self.number(st, args, "h", 1.0)
             r = self.radius(st, args, "r", "d", 1.0)
             r1, r2 = self.radius(st, args, "r1", "d1", r), self.radius(st, args, "r2", "d2", r)
             if h <= 0 or r1 < 0 or r2 < 0 or (r1 == 0 and r2 == 0):
                 return np.zeros((0, 3))
-            return flat.cylinder_points(h, r1, r2, self.flag(st, args, "center"), fn, fs, fa)
+            return shapes_2d.cylinder_points(h, r1, r2, self.flag(st, args, "center"), fn, fs, fa)
         if st.name == "cube":
             solid = self.make_cube(st, args)
-            if isinstance(solid, _Nothing):
+            if isinstance(solid, Nothing):
                 return np.zeros((0, 3))
-            return flat.cube_points(solid.size, self.flag(st, args, "center"))
+            return shapes_2d.cube_points(solid.size, self.flag(st, args, "center"))
         solid = self.make_polyhedron(st, args)
-        if isinstance(solid, _Nothing):
+        if isinstance(solid, Nothing):
             return np.zeros((0, 3))
         if convex and not isinstance(solid, ConvexPolyhedron):
             self.src.fail(st.pos, "minkowski: of a non-convex polyhedron is not supported")
@@ -899,11 +556,11 @@ class _Evaluator:
         return found["$fn"], found["$fs"], found["$fa"]
 
     def extrude(self, st, args, body):
-        if isinstance(body, _Nothing):
+        if isinstance(body, Nothing):
             return EMPTY            # an extrusion of nothing is empty geometry (OpenSCAD's issue 996)
-        if not isinstance(body, flat.Shape2D):
+        if not isinstance(body, shapes_2d.Shape2D):
             self.src.fail(st.pos, f"{st.name}: its children must be 2D (square, circle, polygon, ...)")
-        if flat.is_empty(body):
+        if shapes_2d.is_empty(body):
             self.src.warn(st.pos, f"{st.name}: the 2D outline is empty; OpenSCAD makes nothing of it")
             return EMPTY
         fn, fs, fa = self.facets(st)
@@ -917,11 +574,11 @@ class _Evaluator:
                                       f"axis; OpenSCAD makes nothing of it")
                 return EMPTY
             if x1 <= tol and x0 < -tol:
-                body = flat.scaled(body, -1.0, 1.0)         # all at x <= 0: the mirror image sweeps the same
+                body = shapes_2d.scaled(body, -1.0, 1.0)         # all at x <= 0: the mirror image sweeps the same
             if angle == 0:
                 self.src.warn(st.pos, "rotate_extrude: angle 0 sweeps nothing")
                 return EMPTY
-            return flat.rotate_extrude(body, max(-360.0, min(360.0, angle)), fn, fs, fa)
+            return shapes_2d.rotate_extrude(body, max(-360.0, min(360.0, angle)), fn, fs, fa)
         height = self.number(st, args, "height", 100.0)
         if height <= 0:
             self.src.warn(st.pos, f"linear_extrude: height {height:g} has no volume; OpenSCAD makes nothing of it")
@@ -931,7 +588,7 @@ class _Evaluator:
         scale = self.pair(st, args, "scale", "[sx, sy]")
         if not all(math.isfinite(x) and x >= 0 for x in scale):
             self.src.fail(args["scale"][1], f"linear_extrude: scale must be finite and >= 0, got {_show(scale)}")
-        return flat.linear_extrude(body, height, self.flag(st, args, "center"), twist,
+        return shapes_2d.linear_extrude(body, height, self.flag(st, args, "center"), twist,
                                    None if slices is None else max(1, int(slices)), scale, fn, fs, fa)
 
     def pair(self, st, args, key: str, shape: str) -> list[float]:
@@ -951,14 +608,14 @@ class _Evaluator:
         if not all(math.isfinite(x) for x in size) or min(size) <= 0:
             self.src.warn(st.pos, f"square: size {_show(size)} has no area; OpenSCAD makes nothing of it")
             return EMPTY
-        return flat.square(size, self.flag(st, args, "center"))
+        return shapes_2d.square(size, self.flag(st, args, "center"))
 
     def make_circle(self, st, args):
         r = self.radius(st, args, "r", "d", 1.0)
         if r <= 0:
             self.src.warn(st.pos, f"circle: radius {r:g} has no area; OpenSCAD makes nothing of it")
             return EMPTY
-        return flat.circle(r, *self.facets(st))
+        return shapes_2d.circle(r, *self.facets(st))
 
     def make_polygon(self, st, args):
         points = args.get("points", (None, st.pos))
@@ -976,8 +633,8 @@ class _Evaluator:
                     isinstance(x, float) and x == int(x) and 0 <= x < len(pts) for x in p) for p in paths)):
                 self.src.fail(args["paths"][1], f"polygon: paths must be lists of indices 0..{len(pts) - 1}")
             paths = [[int(x) for x in p] for p in paths]
-        shape = flat.polygon(np.array(pts, dtype=np.float64), paths)
-        if flat.is_empty(shape):
+        shape = shapes_2d.polygon(np.array(pts, dtype=np.float64), paths)
+        if shapes_2d.is_empty(shape):
             self.src.warn(st.pos, "polygon: no area; OpenSCAD makes nothing of it")
             return EMPTY
         return shape
@@ -1043,7 +700,7 @@ class _Evaluator:
             self.src.warn(st.pos, f"sphere: radius {r:g} has no volume; OpenSCAD makes nothing of it")
             return EMPTY
         if self.faceted(st):
-            return flat.convex_solid(flat.sphere_points(r, *self.facets(st)))
+            return shapes_2d.convex_solid(shapes_2d.sphere_points(r, *self.facets(st)))
         return Sphere(r)
 
     def make_cylinder(self, st, args):
@@ -1056,7 +713,8 @@ class _Evaluator:
                                   "OpenSCAD makes nothing of it")
             return EMPTY
         if self.faceted(st):
-            return flat.convex_solid(flat.cylinder_points(h, r1, r2, self.flag(st, args, "center"), *self.facets(st)))
+            points = shapes_2d.cylinder_points(h, r1, r2, self.flag(st, args, "center"), *self.facets(st))
+            return shapes_2d.convex_solid(points)
         cone = Cone(r1, r2, h)
         return cone if self.flag(st, args, "center") else cone.translate((0.0, 0.0, h / 2))
 
@@ -1121,11 +779,11 @@ def _vertices(manifold) -> np.ndarray:
 
 def _manifold(node: Node):
     """A model node as a manifold3d Manifold (`to_mesh`: mesh leaves exactly, round solids at 64 segments)."""
-    from .mesh_export import to_mesh
+    from ..mesh_export import to_mesh
     return to_mesh(node, 64)
 
 
-def _suppressed(st: _Statement) -> bool:
+def _suppressed(st: Statement) -> bool:
     return "*" in st.modifiers or "%" in st.modifiers
 
 
@@ -1162,7 +820,7 @@ def _scad(value) -> str:
         return '"' + escaped.replace("\n", "\\n").replace("\t", "\\t").replace("\r", "\\r") + '"'
     if isinstance(value, list):
         return "[" + ", ".join(_scad(v) for v in value) + "]"
-    if isinstance(value, _Range):
+    if isinstance(value, Range):
         return "[" + " : ".join(_scad(v) for v in value.values) + "]"
     raise FormatError(f"cannot write {value!r} as OpenSCAD source")
 
@@ -1179,63 +837,8 @@ def _show(value, limit: int = 60) -> str:
             return '"' + v + '"'
         if isinstance(v, list):
             return "[" + ", ".join(text(x) for x in v[:8]) + (", ..." if len(v) > 8 else "") + "]"
-        if isinstance(v, _Range):
+        if isinstance(v, Range):
             return "[" + " : ".join(text(x) for x in v.values) + "]"
         return repr(v)
     s = text(value)
     return s if len(s) <= limit else s[:limit - 3] + "..."
-
-
-# ---- Entry points ----
-
-def loads(text: str | bytes, source: str = "<string>", *, on_unsupported: str = "error",
-          facets: str = "auto") -> Node:
-    """The model of OpenSCAD `.csg` text; `source` names it in messages. `facets`: 'auto' (an
-    explicit `$fn` <= FACETED_FN makes spheres and cylinders OpenSCAD's polygon solids, others
-    exact), 'exact' (always round) or 'openscad' (always OpenSCAD's facets)."""
-    if on_unsupported not in ("error", "skip"):
-        raise ModelError(f"on_unsupported: expected 'error' or 'skip', got {on_unsupported!r}")
-    if facets not in FACET_MODES:
-        raise ModelError(f"facets: expected one of {', '.join(FACET_MODES)}, got {facets!r}")
-    if isinstance(text, (bytes, bytearray)):
-        if len(text) > MAX_FILE_BYTES:
-            raise FormatError(f"{source}: {len(text)} bytes is larger than the limit of {MAX_FILE_BYTES}")
-        try:
-            text = bytes(text).decode("utf-8")
-        except UnicodeDecodeError as e:
-            line = bytes(text).count(b"\n", 0, e.start) + 1
-            raise FormatError(f"{source}: not UTF-8 text (invalid byte at offset {e.start}, line {line})") from None
-    if not isinstance(text, str):
-        raise FormatError(f"{source}: expected .csg text, got {type(text).__name__}")
-    if len(text) > MAX_FILE_BYTES:
-        raise FormatError(f"{source}: {len(text)} characters is larger than the limit of {MAX_FILE_BYTES}")
-    src = _Source(source, text.removeprefix("\ufeff"))
-    statements = _Parser(src).parse()
-    result = _Evaluator(src, on_unsupported, facets).evaluate(statements)
-    if isinstance(result, flat.Shape2D):
-        raise FormatError(f"{source}: the model is 2D (extrude it with linear_extrude or rotate_extrude)")
-    if isinstance(result, _Nothing):
-        raise FormatError(f"{source}: the model is empty (no solid geometry"
-                          f"{'' if result is NULL else ': every solid is degenerate or removed'})")
-    return result
-
-
-def load_scad(path, *, on_unsupported: str = "error", facets: str = "auto") -> Node:
-    """Read an OpenSCAD source (`.scad`): OpenSCAD evaluates it to its CSG tree (`openscad -o
-    model.csg model.scad`, `formats.openscad_tool`), which `loads` reads. Without OpenSCAD
-    installed, a CSGError says how to install it or export the tree elsewhere."""
-    from . import openscad_tool
-    read_model_bytes(path, MAX_FILE_BYTES)      # exists, is a plain file, not too large: what OpenSCAD reads
-    text = openscad_tool.export_csg(path)
-    name = os.path.basename(os.fspath(path))
-    return loads(text, f"{name} (as OpenSCAD's .csg export)", on_unsupported=on_unsupported, facets=facets)
-
-
-def load(path, *, on_unsupported: str = "error", facets: str = "auto") -> Node:
-    """Read an OpenSCAD `.csg` file (`openscad -o model.csg model.scad`).
-
-    `on_unsupported="error"` (default) refuses 2D, extrusion and other unsupported nodes with
-    a FormatError naming the node and line; `"skip"` drops them with an OpenSCADWarning.
-    """
-    raw, source = read_model_bytes(path, MAX_FILE_BYTES)
-    return loads(raw, source, on_unsupported=on_unsupported, facets=facets)

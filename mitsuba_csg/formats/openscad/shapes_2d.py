@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from ..model.mesh import Mesh
+from ...model.mesh import Mesh
 
 GRID_FINE = 0.00000095367431640625      # OpenSCAD's smallest radius with more than 3 fragments
 
@@ -170,8 +170,8 @@ def convex_solid(points: np.ndarray):
     """The convex hull of points as a ConvexPolyhedron (a Mesh beyond CONVEX_LEAF_PLANES faces)."""
     import manifold3d as m3
 
-    from ..model.polyhedra import CONVEX_LEAF_PLANES, convex_planes
-    from ..model.primitives import ConvexPolyhedron
+    from ...model.polyhedra import CONVEX_LEAF_PLANES, convex_planes
+    from ...model.primitives import ConvexPolyhedron
     hull = m3.Manifold.hull_points(np.ascontiguousarray(points, dtype=np.float64))
     if hull.is_empty() or hull.volume() <= 0:
         return None
