@@ -16,7 +16,7 @@ import drjit as dr
 from . import layout as K
 from .backend import ad_module
 from .device import gather_prim, opaque, scene_rays
-from .shapes import surface_function
+from .shapes import CanonicalHit, surface_coordinates_local, surface_function
 
 
 def _normal_to_world(m, rows, n_local):
@@ -120,87 +120,20 @@ def attached_hit(to_world, tree, prim, info, t, o, d, active):
 def surface_coordinates(tree, prim, info, o, d, t, active):
     """(uv, dp_du, dp_dv) of the hit at o + t d on primitive `prim`, derivatives in world space.
 
-    Each canonical shape has a parameterization (docs/plugins.md): spheres as Mitsuba's
-    `sphere` (u = phi / 2 pi, v = theta / pi), the sides of cylinders, cones and quadrics as
-    Mitsuba's `cylinder` (u = phi / 2 pi, v up the axis from 0 to 1), box faces as Mitsuba's
-    `cube`, caps planar from 0 to 1 across, the torus by its two angles, convex faces by a frame in their
-    plane, mesh triangles by barycentric coordinates as Mitsuba's meshes without texture
-    coordinates. Shading frames follow dp_du, so anisotropic BSDFs and normal maps have a
-    tangent.
+    Each canonical shape has a parameterization (its row's `uv` in `engine.shapes`;
+    docs/plugins.md): spheres as Mitsuba's `sphere` (u = phi / 2 pi, v = theta / pi), the
+    sides of cylinders, cones and quadrics as Mitsuba's `cylinder` (u = phi / 2 pi, v up the
+    axis from 0 to 1), box faces as Mitsuba's `cube`, caps planar from 0 to 1 across, the torus
+    by its two angles, convex faces by a frame in their plane, mesh triangles by barycentric
+    coordinates as Mitsuba's meshes without texture coordinates. Shading frames follow dp_du,
+    so anisotropic BSDFs and normal maps have a tangent.
     """
     b = tree.b
     m = b.module
     rows, shape, param, plane_start, x, face, plane, grad, _, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
-    zero = dr.zeros(b.Float, dr.width(x.x))
-    two_pi, pi = 2.0 * dr.pi, dr.pi
-
-    # Angle around the z axis, and d/du of a point turning about it.
-    phi = dr.atan2(x.y, x.x)
-    phi = dr.select(phi < 0, phi + two_pi, phi)
-    around = two_pi * b.Array3f(-x.y, x.x, zero)
-    rho = dr.sqrt(x.x * x.x + x.y * x.y)
-    cos_phi, sin_phi = dr.cos(phi), dr.sin(phi)
-    # A surface of revolution (cone, quadric side): up the profile, d rho / dz = -g_z / g_rho.
-    g_rho = grad.x * cos_phi + grad.y * sin_phi
-    slope = dr.select(g_rho != 0, -grad.z / g_rho, 0.0)
-    up_profile = 2.0 * b.Array3f(slope * cos_phi, slope * sin_phi, 1.0)       # z = 2 v - 1
-
-    # Sphere (Mitsuba's sphere).
-    theta = dr.acos(dr.clip(x.z, -1.0, 1.0))
-    uv_sphere = m.Array2f(phi / two_pi, theta / pi)
-    dv_sphere = pi * b.Array3f(x.z * cos_phi, x.z * sin_phi, -dr.sin(theta))
-    # Planar caps of cones and quadrics: [-1, 1]^2 -> [0, 1]^2.
-    uv_cap = m.Array2f(0.5 * (x.x + 1.0), 0.5 * (x.y + 1.0))
-    du_cap, dv_cap = b.Array3f(2.0, 0.0, 0.0) + zero, b.Array3f(0.0, 2.0, 0.0) + zero
-    side = face == 0
-    uv_side = m.Array2f(phi / two_pi, 0.5 * (x.z + 1.0))
-    # Box faces as Mitsuba's `cube` lays its texture out: per face (-x, +x, -y, +y, -z, +z),
-    # u and v run along these signed canonical axes.
-    ex, ey, ez = (b.Array3f(2.0, 0.0, 0.0) + zero, b.Array3f(0.0, 2.0, 0.0) + zero,
-                  b.Array3f(0.0, 0.0, 2.0) + zero)
-
-    def per_face(values):
-        out = values[5]
-        for k in range(4, -1, -1):
-            out = dr.select(face == k, values[k], out)
-        return out
-    u_box = per_face([x.y, x.y, x.z, -x.x, -x.y, x.y])
-    v_box = per_face([x.z, -x.z, x.x, -x.z, x.x, x.x])
-    du_box = per_face([ey, ey, ez, -ex, -ey, ey])
-    dv_box = per_face([ez, -ez, ex, -ez, ex, ex])
-    uv_box = m.Array2f(0.5 * (u_box + 1.0), 0.5 * (v_box + 1.0))
-    # Torus: major angle phi, minor angle psi (minor radius k = param[0]).
-    psi = dr.atan2(x.z, rho - 1.0)
-    psi = dr.select(psi < 0, psi + two_pi, psi)
-    uv_torus = m.Array2f(phi / two_pi, psi / two_pi)
-    dv_torus = two_pi * param[0] * b.Array3f(-dr.sin(psi) * cos_phi, -dr.sin(psi) * sin_phi, dr.cos(psi))
-    # Convex faces: a frame in the face's plane (its first axis from the least aligned axis).
-    n_f = b.Array3f(plane.x, plane.y, plane.z)
-    helper = dr.select(dr.abs(n_f.x) < 0.9, b.Array3f(1.0, 0.0, 0.0) + zero, b.Array3f(0.0, 1.0, 0.0) + zero)
-    du_flat = dr.normalize(dr.cross(helper, n_f))
-    dv_flat = dr.cross(n_f, du_flat)
-    uv_flat = m.Array2f(dr.dot(x, du_flat), dr.dot(x, dv_flat))
-    # Mesh triangles: barycentric coordinates over the stored (index-sorted) vertices.
-    row = (plane_start + K.info_face(info)) * 3
-    is_mesh = active & (shape == K.MESH)
-    va = dr.gather(b.Array4f, tree.triangles, row, is_mesh)
-    vb = dr.gather(b.Array4f, tree.triangles, row + 1, is_mesh)
-    vc = dr.gather(b.Array4f, tree.triangles, row + 2, is_mesh)
-    a3, e1 = b.Array3f(va.x, va.y, va.z), b.Array3f(vb.x - va.x, vb.y - va.y, vb.z - va.z)
-    e2 = b.Array3f(vc.x - va.x, vc.y - va.y, vc.z - va.z)
-    rel = x - a3
-    d11, d12, d22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
-    r1, r2 = dr.dot(rel, e1), dr.dot(rel, e2)
-    det = d11 * d22 - d12 * d12
-    uv_mesh = m.Array2f((d22 * r1 - d12 * r2) / det, (d11 * r2 - d12 * r1) / det)
-
-    def pick(sphere, side_or_cap, box, torus, flat, mesh):
-        return dr.select(shape == K.SPHERE, sphere, dr.select((shape == K.CONE) | (shape == K.QUADRIC), side_or_cap,
-                         dr.select(shape == K.BOX, box, dr.select(shape == K.TORUS, torus,
-                                   dr.select(shape == K.MESH, mesh, flat)))))
-    uv = pick(uv_sphere, dr.select(side, uv_side, uv_cap), uv_box, uv_torus, uv_flat, uv_mesh)
-    du = pick(around, dr.select(side, around, du_cap), du_box, around, du_flat, e1)
-    dv = pick(dv_sphere, dr.select(side, up_profile, dv_cap), dv_box, dv_torus, dv_flat, e2)
+    hit = CanonicalHit(b, x, shape, param, face, plane, grad, tree=tree, plane_start=plane_start, info=info,
+                       active=active)
+    uv, du, dv = surface_coordinates_local(hit)
     # Tangents map with canonical -> world: the inverse of the rows' linear part, then the
     # scene frame's scale.
     A = m.Matrix3f(rows[0].x, rows[0].y, rows[0].z, rows[1].x, rows[1].y, rows[1].z,

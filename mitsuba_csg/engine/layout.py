@@ -54,9 +54,7 @@ KIND_NAMES = {UNION: "union", INTERSECTION: "intersection", DIFFERENCE: "differe
 SPHERE, BOX, CONE, TORUS, CONVEX, MESH, QUADRIC = 0, 1, 2, 3, 4, 5, 6
 SHAPE_CODES = {"sphere": SPHERE, "box": BOX, "cone": CONE, "torus": TORUS, "convex": CONVEX, "mesh": MESH,
                "quadric": QUADRIC}
-# Shapes whose inside along a ray may be several intervals, and those whose inside is one.
-NON_CONVEX_SHAPES = (TORUS, MESH, QUADRIC)
-CONVEX_SHAPES = tuple(code for code in SHAPE_CODES.values() if code not in NON_CONVEX_SHAPES)
+# Which are convex (one interval along a ray) their rows say: engine.shapes.CONVEX_CODES.
 SHAPE_NAMES = {code: name for name, code in SHAPE_CODES.items()}
 
 # ---- Event classes ----

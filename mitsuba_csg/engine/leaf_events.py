@@ -61,7 +61,7 @@ def leaf_hit(tree, ray, node, flags, prim, t_start):
     # A complemented leaf swaps enter/exit; missing it means being inside it forever.
     cls = dr.select(complemented, complement_class(cls), cls)
     non_convex = dr.zeros(b.Bool, dr.width(t))
-    for code in K.NON_CONVEX_SHAPES:
+    for code in shapes.NON_CONVEX_CODES:
         if code in tree.shape_kinds:
             non_convex |= shape == code
     info = K.hit_info(cls, dr.select(complemented, FLIP_BIT, 0), face, slope)

@@ -22,6 +22,7 @@ import numpy as np
 from . import layout as K
 from .neighbours import GRID_WORDS, cell_grids, neighbour_trees
 from .options import TraversalOptions
+from .shapes import CONVEX_CODES, NON_CONVEX_CODES
 
 
 @dataclass
@@ -108,7 +109,7 @@ def set_records(nodes: NodeArrays, marks: SetMarks, box: np.ndarray, flat, frame
     grids = np.zeros((0, GRID_WORDS), np.uint32)
     if options.sets and (options.neighbour_passes or options.cell_passes):
         leaf = kind == K.LEAF
-        convex = leaf & ~np.isin(flat.prim_shape[np.where(leaf, left, 0)], K.NON_CONVEX_SHAPES)
+        convex = leaf & ~np.isin(flat.prim_shape[np.where(leaf, left, 0)], NON_CONVEX_CODES)
         # Only where rays cross a set's inside outside the solid (holes: a subtracted or
         # complemented set) do its passes from inside matter; elsewhere the trees would cost
         # memory (a Satellites' parts: 23 MB more for 87,500 primitives) and save little.
@@ -152,7 +153,7 @@ def _compound_roots(nodes: NodeArrays, flat) -> np.ndarray:
     # Literals of the node as an intersection (as_is), and of its complement (negated); -1: none.
     as_is, negated = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
     leaves = np.flatnonzero(kind == K.LEAF)
-    convex = leaves[np.isin(flat.prim_shape[left[leaves]], K.CONVEX_SHAPES) & ~neg[leaves]]
+    convex = leaves[np.isin(flat.prim_shape[left[leaves]], CONVEX_CODES) & ~neg[leaves]]
     as_is[convex] = negated[convex] = 1
     limit = K.MAX_COMPOUND_LITERALS
 
