@@ -268,9 +268,9 @@ def in_union(node) -> dict:
 @pytest.mark.parametrize("node,pattern", [
     # node type and keys
     ({"type": "sphre", "radius": 1}, r"root\.children\[1\]\.type: unknown node type 'sphre'; "
-                                     r"known node types: sphere, box, cylinder, cone, torus, paraboloid, hyperboloid, prism, "
-                                     r"convex_polyhedron, mesh, union, intersection, difference$"),
-    ({"radius": 1}, r'root\.children\[1\]: missing key "type"; known node types: sphere'),
+                                     r"known node types: box, cone, convex_polyhedron, cylinder, hyperboloid, mesh, "
+                                     r"paraboloid, prism, sphere, torus, union, intersection, difference$"),
+    ({"radius": 1}, r'root\.children\[1\]: missing key "type"; known node types: box'),
     ([1, 2], r"root\.children\[1\]: expected a node .* got a list of 2 items"),
     ({"type": "sphere"}, r"root\.children\[1\]: a sphere needs 'radius' \(missing\)"),
     ({"type": "cone", "height": 1}, r"root\.children\[1\]: a cone needs 'radius_bottom', 'radius_top'"),

@@ -27,8 +27,6 @@ import numpy as np
 import manifold3d as m3
 
 from ..errors import ModelError
-from ..model import primitives as P
-from ..model.mesh import Mesh
 from ..model.nodes import DIFFERENCE, INTERSECTION, UNION, Node, Operation
 
 MESH_FORMATS = (".ply", ".obj", ".stl")
@@ -157,16 +155,15 @@ def _check_status(mesh: m3.Manifold, what: str) -> None:
 class _ShapeCache:
     """Primitive meshes in their local frames, built once per call and shared (Manifolds are immutable).
 
-    Each mesh is made from the primitive's own parameters (radius, size, sides, ...) with
-    manifold3d's constructors, not from the canonical forms the kernel traces, so that the
-    reference shares no geometry code with the engine. (Convex polyhedra use the vertices
-    the model derives from their planes.)
+    Each mesh is the primitive's own (`Primitive.tessellate`): made from its parameters
+    (radius, size, sides, ...) with manifold3d's constructors, not from the canonical forms
+    the kernel traces, so that the reference shares no geometry code with the engine.
+    (Convex polyhedra use the vertices the model derives from their planes.)
     """
 
     def __init__(self, segments: int):
         self.segments = segments
-        self.cache: dict = {}
-        self.keep: list = []   # keeps arrays keyed by id() alive for the cache's lifetime
+        self.cache: dict = {}   # mesh key -> (mesh, the primitive it was made of)
 
     def primitive(self, prim: Node, world: np.ndarray) -> m3.Manifold:
         if not np.all(np.isfinite(world)) or np.linalg.det(world[:3, :3]) == 0:
@@ -175,99 +172,16 @@ class _ShapeCache:
         return self.local(prim).transform(np.ascontiguousarray(world[:3, :]))
 
     def local(self, prim: Node) -> m3.Manifold:
-        key = _mesh_key(prim)
-        if isinstance(prim, P.ConvexPolyhedron) and not isinstance(prim, P.Prism):
-            self.keep.append(prim.vertices)
-        if isinstance(prim, Mesh):
-            self.keep.append(prim.faces)
-        mesh = self.cache.get(key)
-        if mesh is None:
-            mesh = _primitive_mesh(prim, self.segments)
+        key = prim.mesh_key()
+        entry = self.cache.get(key)
+        if entry is None:
+            mesh = prim.tessellate(self.segments)
             _check_status(mesh, repr(prim))
             if mesh.is_empty():
                 raise ModelError(f"to_mesh: manifold3d built an empty mesh for {prim!r}")
-            self.cache[key] = mesh
-        return mesh
-
-
-def _mesh_key(prim: Node) -> tuple:
-    if isinstance(prim, Mesh):
-        return ("mesh", id(prim.faces))
-    if isinstance(prim, P.Prism):
-        return ("prism", prim.sides, prim.apothem, prim.height)
-    if isinstance(prim, P.ConvexPolyhedron):
-        return ("convex", id(prim.vertices))
-    if isinstance(prim, P.Sphere):
-        return ("sphere", prim.radius)
-    if isinstance(prim, P.Box):
-        return ("box", prim.size)
-    if isinstance(prim, P.Cone):
-        return ("cone", prim.radius_bottom, prim.radius_top, prim.height)
-    if isinstance(prim, P.Torus):
-        return ("torus", prim.major_radius, prim.minor_radius)
-    if isinstance(prim, (P.Paraboloid, P.Hyperboloid)):
-        return (type(prim).__name__,) + tuple(getattr(prim, k) for k in type(prim).__slots__)
-    raise ModelError(f"to_mesh: no mesh for the primitive {prim!r}")
-
-
-def _primitive_mesh(prim: Node, n: int) -> m3.Manifold:
-    """The mesh of one primitive centred on its origin, z its axis (full lengths, as documented)."""
-    if isinstance(prim, Mesh):
-        return m3.Manifold(m3.Mesh(vert_properties=np.asarray(prim.vertices, np.float32),
-                                   tri_verts=np.asarray(prim.faces, np.uint32)))
-    if isinstance(prim, P.Prism):
-        # A regular polygon with apothem a has its vertices at a / cos(pi / sides); a side faces +x.
-        k = np.arange(prim.sides)
-        angles = (k + 0.5) * 2.0 * np.pi / prim.sides
-        r = prim.apothem / np.cos(np.pi / prim.sides)
-        ring = np.stack([r * np.cos(angles), r * np.sin(angles)], 1)
-        z = np.full((prim.sides, 1), 0.5 * prim.height)
-        return m3.Manifold.hull_points(np.vstack([np.hstack([ring, -z]), np.hstack([ring, z])]))
-    if isinstance(prim, P.ConvexPolyhedron):
-        return m3.Manifold.hull_points(np.asarray(prim.vertices, dtype=np.float64))
-    if isinstance(prim, P.Sphere):
-        return m3.Manifold.sphere(prim.radius, n)
-    if isinstance(prim, P.Box):
-        return m3.Manifold.cube(tuple(prim.size), center=True)
-    if isinstance(prim, P.Cone):
-        return m3.Manifold.cylinder(prim.height, prim.radius_bottom, prim.radius_top, n, center=True)
-    if isinstance(prim, (P.Paraboloid, P.Hyperboloid)):
-        return _revolved_quadric(prim, n)
-    tube = m3.CrossSection.circle(prim.minor_radius, n).translate((prim.major_radius, 0.0))
-    return m3.Manifold.revolve(tube, n)
-
-
-def _revolved_quadric(prim, n: int) -> m3.Manifold:
-    """A paraboloid or hyperboloid: its profile rho(z) revolved, sampled at n / 2 even steps in z
-    and at the z of n / 2 even steps in rho on each side (a tip's rho grows as a square root), so
-    that the profile's chords stray about as far as the circles' sagitta."""
-    canonical, (a, b), _ = prim.canonical()
-    r, half = canonical[0, 0], canonical[2, 2]
-    c = 1.0 - a - abs(b)
-    k = max(n // 2, 2)
-    levels = np.linspace(0.0, 1.0, k + 1) ** 2 - c         # a z^2 + b z = rho^2 - c
-    with np.errstate(divide="ignore", invalid="ignore"):
-        if a > 0:
-            disc = np.sqrt(np.maximum(b * b + 4.0 * a * levels, 0.0))
-            steps = np.concatenate([(-b - disc) / (2.0 * a), (-b + disc) / (2.0 * a)])
-        else:
-            steps = levels / b
-    steps = steps[np.isfinite(steps) & (np.abs(steps) < 1.0)]
-    s = np.unique(np.concatenate([np.linspace(-1.0, 1.0, k + 1), steps]))
-    s = s[np.concatenate([[True], np.diff(s) > 1e-9])]
-    rho = r * np.sqrt(np.maximum(a * s * s + b * s + c, 0.0))
-    # The outline runs up the axis' far side: from (0, -half) along the profile to (0, half).
-    # Profile points on the axis (a tip, a double cone's apex) are the axis points themselves.
-    on_axis = rho <= 1e-9 * r
-    points = [[0.0, -half]]
-    for k in range(len(s)):
-        if not on_axis[k]:
-            points.append([rho[k], half * s[k]])
-        elif 0 < k < len(s) - 1:
-            points.append([0.0, half * s[k]])
-    points.append([0.0, half])
-    polygon = np.array(points)
-    return m3.Manifold.revolve(m3.CrossSection([polygon]), n)
+            # The primitive is kept with its mesh: keys made of its arrays' ids stay its own.
+            entry = self.cache[key] = (mesh, prim)
+        return entry[0]
 
 
 # ---- Mesh files ----

@@ -29,9 +29,8 @@ from .. import memory
 from ..errors import ModelError
 from ..model import transform as tf
 from ..model import values
-from ..model.mesh import Mesh
-from ..model.nodes import OPERATIONS, Node, Operation
-from ..model.primitives import Box, Cone, ConvexPolyhedron, Cylinder, Hyperboloid, Paraboloid, Prism, Sphere, Torus
+from ..model.nodes import OPERATIONS, PRIMITIVE_TYPES, Node, Operation, Primitive
+from ..model.polyhedra import MAX_PLANES
 from .reading import FormatError, read_model_bytes
 
 FORMAT = "mitsuba-csg"
@@ -230,7 +229,7 @@ def _size(value, source, path):
 
 def _planes(value, source, path):
     _list(value, source, path, "a list of planes [nx, ny, nz, d]")
-    top = ConvexPolyhedron.MAX_PLANES
+    top = MAX_PLANES
     if not 4 <= len(value) <= top:
         _fail(source, path, f"a closed convex solid needs 4..{top} planes, got {len(value)}")
     rows = []
@@ -262,19 +261,13 @@ def _faces(value, source, path):
     return rows
 
 
-# type name -> (class, {parameter: check}) in the order files list them
-PRIMITIVES = {
-    "sphere": (Sphere, {"radius": _positive}),
-    "box": (Box, {"size": _size}),
-    "cylinder": (Cylinder, {"radius": _positive, "height": _positive}),
-    "cone": (Cone, {"radius_bottom": _nonnegative, "radius_top": _nonnegative, "height": _positive}),
-    "torus": (Torus, {"major_radius": _positive, "minor_radius": _positive}),
-    "paraboloid": (Paraboloid, {"radius_bottom": _nonnegative, "radius_top": _nonnegative, "height": _positive}),
-    "hyperboloid": (Hyperboloid, {"radius": _nonnegative, "radius_end": _positive, "height": _positive}),
-    "prism": (Prism, {"sides": _sides, "apothem": _positive, "height": _positive}),
-    "convex_polyhedron": (ConvexPolyhedron, {"planes": _planes}),
-    "mesh": (Mesh, {"vertices": _vertices, "faces": _faces}),
-}
+# What a file must give for each kind of primitive parameter (`Primitive.file_parameters`).
+_CHECKS = {"positive": _positive, "nonnegative": _nonnegative, "size": _size, "sides": _sides, "planes": _planes,
+           "vertices": _vertices, "faces": _faces}
+# type name -> (class, {parameter: check}), from the primitive classes themselves, by name
+# (importing the model package defines them all)
+PRIMITIVES = {name: (cls, {key: _CHECKS[kind] for key, kind in cls.file_parameters.items()})
+              for name, cls in sorted(PRIMITIVE_TYPES.items())}
 NODE_TYPES = (*PRIMITIVES, *OPERATIONS)
 _COMMON_KEYS = ("transform", "material")
 _STEPS = ("translate", "rotate", "scale", "matrix")
@@ -282,30 +275,10 @@ _STEPS = ("translate", "rotate", "scale", "matrix")
 
 def _primitive_params(prim) -> tuple[str, dict]:
     """(type name, parameters) of a primitive, for writing."""
-    for cls in type(prim).__mro__:
-        if cls is Sphere:
-            return "sphere", {"radius": prim.radius}
-        if cls is Box:
-            return "box", {"size": list(prim.size)}
-        if cls is Cylinder:
-            return "cylinder", {"radius": prim.radius, "height": prim.height}
-        if cls is Cone:
-            return "cone", {"radius_bottom": prim.radius_bottom, "radius_top": prim.radius_top,
-                            "height": prim.height}
-        if cls is Paraboloid:
-            return "paraboloid", {"radius_bottom": prim.radius_bottom, "radius_top": prim.radius_top,
-                                  "height": prim.height}
-        if cls is Hyperboloid:
-            return "hyperboloid", {"radius": prim.radius, "radius_end": prim.radius_end, "height": prim.height}
-        if cls is Torus:
-            return "torus", {"major_radius": prim.major_radius, "minor_radius": prim.minor_radius}
-        if cls is Prism:
-            return "prism", {"sides": prim.sides, "apothem": prim.apothem, "height": prim.height}
-        if cls is ConvexPolyhedron:
-            return "convex_polyhedron", {"planes": prim.planes.tolist()}
-        if cls is Mesh:
-            return "mesh", {"vertices": prim.vertices.tolist(), "faces": prim.faces.tolist()}
-    raise ModelError(f"native format: cannot write a {type(prim).__name__} (not a known primitive or operation)")
+    kind = type(prim).file_type() if isinstance(prim, Primitive) else None
+    if kind is None:
+        raise ModelError(f"native format: cannot write a {type(prim).__name__} (not a known primitive or operation)")
+    return kind, prim.parameters()
 
 
 def _make_primitive(kind: str, params: dict, source, path):

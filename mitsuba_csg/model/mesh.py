@@ -176,6 +176,8 @@ class Mesh(Primitive):
 
     __slots__ = ("vertices", "faces")
     canonical_shape = "mesh"
+    type_name = "mesh"
+    file_parameters = {"vertices": "vertices", "faces": "faces"}
 
     def __init__(self, vertices, faces, *, material: str | None = None):
         super().__init__(material=material)
@@ -198,6 +200,17 @@ class Mesh(Primitive):
     def canonical(self):
         # The mesh is its own canonical solid; the kernel reads its triangles and BVH.
         return tf.IDENTITY, (0.0, 0.0), None
+
+    def parameters(self) -> dict:
+        return {"vertices": self.vertices.tolist(), "faces": self.faces.tolist()}
+
+    def mesh_key(self) -> tuple:
+        return ("mesh", id(self.faces))
+
+    def tessellate(self, segments: int):
+        import manifold3d as m3
+        return m3.Manifold(m3.Mesh(vert_properties=np.asarray(self.vertices, np.float32),
+                                   tri_verts=np.asarray(self.faces, np.uint32)))
 
     def __repr__(self):
         return f"Mesh(<{len(self.vertices)} vertices, {len(self.faces)} triangles>){self._transform_repr()}"

@@ -122,10 +122,53 @@ class Node:
         return ".transform(" + np.array2string(self.matrix, separator=", ", precision=6) + ")"
 
 
+# Primitive classes by their name in native files, as they define themselves (`Primitive`).
+PRIMITIVE_TYPES: dict[str, type] = {}
+
+
 class Primitive(Node):
-    """A closed analytic solid in its local frame (see `mitsuba_csg.model.primitives`)."""
+    """A closed analytic solid in its local frame (see `mitsuba_csg.model.primitives`).
+
+    A primitive's class is where the project learns about it: its canonical form for the
+    kernel (`canonical`, `canonical_shape`), its name and parameters in native files
+    (`type_name`, `file_parameters`, `parameters`) and its reference mesh (`tessellate`,
+    `mesh_key`). A class that names a `type_name` of its own is registered for the readers
+    and writers (`PRIMITIVE_TYPES`); a subclass without one is written as its base.
+    """
 
     __slots__ = ()
+    type_name: str | None = None    # its node type in native files
+    # Its parameters in native files, each with what a file must give: "positive",
+    # "nonnegative", "size" (a number or three), "sides", "planes", "vertices" or "faces".
+    file_parameters: dict = {}
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        name = cls.__dict__.get("type_name")
+        if name:
+            PRIMITIVE_TYPES[name] = cls
+
+    @classmethod
+    def file_type(cls) -> str | None:
+        """The node type this primitive is written as: its own class's or its nearest base's."""
+        for klass in cls.__mro__:
+            if klass.__dict__.get("type_name"):
+                return klass.__dict__["type_name"]
+        return None
+
+    def parameters(self) -> dict:
+        """Its `file_parameters` and their values, as a native file writes them."""
+        return {name: getattr(self, name) for name in self.file_parameters}
+
+    def mesh_key(self) -> tuple:
+        """Primitives with equal keys have the same reference mesh (`tessellate`)."""
+        return (type(self).file_type(), *(repr(v) for v in self.parameters().values()))
+
+    def tessellate(self, segments: int):
+        """The reference mesh (a `manifold3d.Manifold`) of the primitive in its local frame,
+        made from its own parameters with manifold3d's constructors, so that it shares no
+        geometry code with the engine; `segments` edges around a full circle."""
+        raise ModelError(f"to_mesh: no mesh for the primitive {self!r}")
 
 
 class Operation(Node):
