@@ -703,45 +703,74 @@ def _circle(centre, radius, w, phi):
     return centre + radius * (c * u1 + s * u2), radius * (c * u2 - s * u1)
 
 
-def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
-    """(world point, world tangent dx/du, valid) of curves at u in [0, 1), attached to the
-    matrices (m, t) of the curves' leaves; `data` the curves' DATA_FLOATS floats (`Curves.data`)."""
-    phi = dr.two_pi * u
-    inv_a = dr.rcp(m_a)
-    cam = inv_a @ (camera - t_a)                   # the camera in leaf a's canonical frame
-    valid = mi.Bool(True)
-    zero = mi.Vector3f(0)
+class _CurvePoint:
+    """What every curve's point at u is computed from: the curves' `kind`, `extra` and
+    `data` (`Curves`), the matrices (m, t) of their leaves a and b (attached), the `camera`,
+    `u`, and what several kinds share: phi = 2 pi u and the camera in leaf a's canonical
+    frame. A plain class: it is read by the kinds' functions, not carried through loops."""
 
-    # Sphere contour: |x| = 1 and x . cam = 1: centre cam / |cam|^2, radius sqrt(1 - 1 / |cam|^2).
-    s2 = dr.squared_norm(cam)
-    x_sil, dx_sil = _circle(cam / s2, dr.safe_sqrt(1 - dr.rcp(s2)), dr.normalize(cam), phi)
-    valid_sil = s2 > 1
+    __slots__ = ("kind", "extra", "m_a", "t_a", "m_b", "t_b", "data", "camera", "u", "phi", "cam")
 
-    # Cone side contour: cos(phi - phi0) = (a + b cam_z) / |cam_xy| at r(z) = a + b z.
-    r0, r1 = data[0], data[1]
-    a_, b_ = 0.5 * (r0 + r1), 0.5 * (r1 - r0)
+    def __init__(self, kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
+        self.kind, self.extra, self.data, self.camera, self.u = kind, extra, data, camera, u
+        self.m_a, self.t_a, self.m_b, self.t_b = m_a, t_a, m_b, t_b
+        self.phi = dr.two_pi * u
+        self.cam = dr.rcp(m_a) @ (camera - t_a)    # the camera in leaf a's canonical frame
+
+    def cone(self):
+        """(a, b) of a cone side's radius a + b z from leaf a's radii (data 0, 1)."""
+        r0, r1 = self.data[0], self.data[1]
+        return 0.5 * (r0 + r1), 0.5 * (r1 - r0)
+
+    def face_plane(self):
+        """(n', d'): the plane of a face of leaf b (data 2-5: n . y = d in b's frame) as
+        n' . x = d' in leaf a's canonical frame."""
+        data = self.data
+        q = dr.rcp(self.m_b).T @ mi.Vector3f(data[2], data[3], data[4])
+        return self.m_a.T @ q, data[5] - dr.dot(q, self.t_a - self.t_b)
+
+    def branch(self):
+        """+1 or -1: the branch of a two-branch curve (bit 0 of `extra`)."""
+        return dr.select((self.extra & 1) == 0, 1.0, -1.0)
+
+
+# ---- Each kind's point, tangent dx/du (dx/dphi for circles) and validity ----
+
+def _sphere_silhouette(c):
+    """|x| = 1 and x . cam = 1: centre cam / |cam|^2, radius sqrt(1 - 1 / |cam|^2)."""
+    s2 = dr.squared_norm(c.cam)
+    x, dx = _circle(c.cam / s2, dr.safe_sqrt(1 - dr.rcp(s2)), dr.normalize(c.cam), c.phi)
+    return x, dx, s2 > 1
+
+
+def _cone_silhouette(c):
+    """cos(phi - phi0) = (a + b cam_z) / |cam_xy| at r(z) = a + b z."""
+    cam = c.cam
+    a_, b_ = c.cone()
     rho = dr.sqrt(cam.x * cam.x + cam.y * cam.y)
     cos_d = (a_ + b_ * cam.z) / rho
-    ang = dr.atan2(cam.y, cam.x) + dr.select(extra == 0, 1.0, -1.0) * dr.safe_acos(cos_d)
-    z = 2 * u - 1
+    ang = dr.atan2(cam.y, cam.x) + dr.select(c.extra == 0, 1.0, -1.0) * dr.safe_acos(cos_d)
+    z = 2 * c.u - 1
     radial = mi.Vector3f(dr.cos(ang), dr.sin(ang), 0)
-    x_cone = radial * (a_ + b_ * z) + mi.Vector3f(0, 0, z)
-    dx_cone = radial * (2 * b_) + mi.Vector3f(0, 0, 2)
-    valid_cone = (rho > 0) & (dr.abs(cos_d) < 1)
+    return (radial * (a_ + b_ * z) + mi.Vector3f(0, 0, z), radial * (2 * b_) + mi.Vector3f(0, 0, 2),
+            (rho > 0) & (dr.abs(cos_d) < 1))
 
-    # Torus contour (major radius 1, minor k = data[0]): at angle w about the axis the tube
-    # point at v has normal n = (cos v cos w, cos v sin w, sin v) and n . x = cos v + k, so
-    # n . (x - cam) = 0 reads F(w, v) = A cos v + B sin v + k = 0 with A = 1 - (cam_x cos w +
-    # cam_y sin w), B = -cam_z. Each branch is listed twice, parametrized by w = phi (v =
-    # atan2(B, A) +- acos(-k / |(A, B)|)) and by v = phi (w = w0 +- acos((cos v + k - cam_z sin
-    # v) / (|cam_xy| cos v))): near a fold of one parametrization (where the contour runs along
-    # a meridian, or along a parallel) its speed diverges and so would the weights of points
-    # sampled there, so the two are combined (the balance heuristic, as the host lists them
-    # with equal weights): the tangent returned is the contour's direction D = x_w F_v - x_v
-    # F_w over |F_v| + |F_w|, the speed of neither but that of their mixture, bounded.
-    k_t = r0
-    by_tube = (extra & OTHER_PARAMETER) != 0
-    side_t = dr.select((extra & 1) == 0, 1.0, -1.0)
+
+def _torus_silhouette(c):
+    """Major radius 1, minor k = data[0]: at angle w about the axis the tube point at v has
+    normal n = (cos v cos w, cos v sin w, sin v) and n . x = cos v + k, so n . (x - cam) = 0
+    reads F(w, v) = A cos v + B sin v + k = 0 with A = 1 - (cam_x cos w + cam_y sin w), B =
+    -cam_z. Each branch is listed twice, parametrized by w = phi (v = atan2(B, A) +- acos(-k /
+    |(A, B)|)) and by v = phi (w = w0 +- acos((cos v + k - cam_z sin v) / (|cam_xy| cos v))):
+    near a fold of one parametrization (where the contour runs along a meridian, or along a
+    parallel) its speed diverges and so would the weights of points sampled there, so the two
+    are combined (the balance heuristic, as the host lists them with equal weights): the
+    tangent returned is the contour's direction D = x_w F_v - x_v F_w over |F_v| + |F_w|, the
+    speed of neither but that of their mixture, bounded."""
+    cam, phi = c.cam, c.phi
+    k_t = c.data[0]
+    by_tube = (c.extra & OTHER_PARAMETER) != 0
+    side_t = c.branch()
     cos_p, sin_p = dr.cos(phi), dr.sin(phi)
     A_p, B_t = 1 - (cam.x * cos_p + cam.y * sin_p), -cam.z
     R_t = dr.sqrt(A_p * A_p + B_t * B_t)
@@ -761,21 +790,24 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     x_v = mi.Vector3f(-k_t * sv * c_w, -k_t * sv * s_w, k_t * cv)
     mixture = dr.abs(f_v) + dr.abs(f_w)
     dx_tor = (x_w * f_v - x_v * f_w) / mixture
-    valid_tor = dr.select(by_tube, (dr.abs(c_v) <= 1) & (rho_cam * cos_p != 0), R_t > k_t) & (mixture > 0)
+    valid = dr.select(by_tube, (dr.abs(c_v) <= 1) & (rho_cam * cos_p != 0), R_t > k_t) & (mixture > 0)
+    return x_tor, dx_tor, valid
 
-    # Quadric side contour, rho^2 = q(z) = qa z^2 + qb z + qc: at angle phi about the axis,
-    # with w = cam_x cos phi + cam_y sin phi, (x - cam) . grad g = 0 reads F = L(z) - 2 w rho(z)
-    # = 0, L(z) = alpha z + beta = (qb + 2 qa cam_z) z + 2 qc + qb cam_z. Listed twice, as the
-    # torus's contour: by phi (z a root of L^2 = 4 w^2 q(z), a quadratic, where L and w agree
-    # in sign) and by the height z = 2 u - 1 (phi = phi0 +- acos(L / (2 rho |cam_xy|))), and
-    # mixed: the tangent D = x_phi F_z - x_z F_phi over |F_z| + pi |F_phi| (z's range is 2,
-    # phi's 2 pi).
-    qa, qb = r0, r1
+
+def _quadric_silhouette(c):
+    """rho^2 = q(z) = qa z^2 + qb z + qc: at angle phi about the axis, with w = cam_x cos phi +
+    cam_y sin phi, (x - cam) . grad g = 0 reads F = L(z) - 2 w rho(z) = 0, L(z) = alpha z +
+    beta = (qb + 2 qa cam_z) z + 2 qc + qb cam_z. Listed twice, as the torus's contour: by phi
+    (z a root of L^2 = 4 w^2 q(z), a quadratic, where L and w agree in sign) and by the
+    height z = 2 u - 1 (phi = phi0 +- acos(L / (2 rho |cam_xy|))), and mixed: the tangent D =
+    x_phi F_z - x_z F_phi over |F_z| + pi |F_phi| (z's range is 2, phi's 2 pi)."""
+    cam, phi, u = c.cam, c.phi, c.u
+    qa, qb = c.data[0], c.data[1]
     qc = 1 - qa - dr.abs(qb)
     alpha, beta = qb + 2 * qa * cam.z, 2 * qc + qb * cam.z
-    by_height = (extra & OTHER_PARAMETER) != 0
-    first = (extra & 1) == 0
-    w_p = cam.x * cos_p + cam.y * sin_p
+    by_height = (c.extra & OTHER_PARAMETER) != 0
+    first = (c.extra & 1) == 0
+    w_p = cam.x * dr.cos(phi) + cam.y * dr.sin(phi)
     w4 = 4 * w_p * w_p
     c2, c1, c0 = alpha * alpha - w4 * qa, 2 * alpha * beta - w4 * qb, beta * beta - w4 * qc
     root = dr.safe_sqrt(c1 * c1 - 4 * c2 * c0)
@@ -785,8 +817,9 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     valid_phi = (c1 * c1 >= 4 * c2 * c0) & ((agree > 0) | ((agree == 0) & first))
     z_h = 2 * u - 1
     rho_h = dr.safe_sqrt(qa * z_h * z_h + qb * z_h + qc)
+    rho_cam = dr.sqrt(cam.x * cam.x + cam.y * cam.y)
     cos_h = (alpha * z_h + beta) / (2 * rho_h * rho_cam)
-    phi_of_z = dr.atan2(cam.y, cam.x) + side_t * dr.safe_acos(cos_h)
+    phi_of_z = dr.atan2(cam.y, cam.x) + c.branch() * dr.safe_acos(cos_h)
     valid_z = (dr.abs(cos_h) <= 1) & (rho_h > 0) & (rho_cam > 0)
     z_q = dr.select(by_height, z_h, z_of_phi)
     phi_q = dr.select(by_height, phi_of_z, phi)
@@ -801,41 +834,55 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     x_z = mi.Vector3f(slope_q * c_q, slope_q * s_q, 1)
     mixture_q = dr.abs(f_z) + dr.pi * dr.abs(f_phi)
     dx_quad = (x_phi * f_z - x_z * f_phi) / mixture_q
-    valid_quad = dr.select(by_height, valid_z, valid_phi) & (dr.abs(z_q) <= 1) & (q_z > 0) & (mixture_q > 0)
+    valid = dr.select(by_height, valid_z, valid_phi) & (dr.abs(z_q) <= 1) & (q_z > 0) & (mixture_q > 0)
+    return x_quad, dx_quad, valid
 
-    # Cone rim: the circle z = -1 (extra 0) or +1 (extra 1).
-    rim_z = dr.select(extra == 0, -1.0, 1.0)
-    x_rim, dx_rim = _circle(mi.Vector3f(0, 0, rim_z), dr.select(extra == 0, r0, r1), mi.Vector3f(0, 0, 1), phi)
 
-    # Box edge: between two canonical corners.
-    # (masked: other kinds' `extra` is no edge index, and an unmasked gather past the table's
-    # end reads whatever memory lies there)
-    corner_i = dr.gather(mi.UInt32, mi.UInt32([i for i, _ in _BOX_EDGES]), extra, kind == SEGMENT)
-    corner_j = dr.gather(mi.UInt32, mi.UInt32([j for _, j in _BOX_EDGES]), extra, kind == SEGMENT)
+def _rim(c):
+    """A cone's rim: the circle z = -1 (extra 0, radius data 0) or +1 (extra 1, data 1)."""
+    rim_z = dr.select(c.extra == 0, -1.0, 1.0)
+    x, dx = _circle(mi.Vector3f(0, 0, rim_z), dr.select(c.extra == 0, c.data[0], c.data[1]), mi.Vector3f(0, 0, 1),
+                    c.phi)
+    return x, dx, True
 
-    def corner(c):
-        return mi.Vector3f(dr.select((c & 1) != 0, 1.0, -1.0), dr.select((c & 2) != 0, 1.0, -1.0),
-                           dr.select((c & 4) != 0, 1.0, -1.0))
+
+def _box_edge(c):
+    """A box edge: between two canonical corners. (Masked: other kinds' `extra` is no edge
+    index, and an unmasked gather past the table's end reads whatever memory lies there.)"""
+    segment = c.kind == SEGMENT
+    corner_i = dr.gather(mi.UInt32, mi.UInt32([i for i, _ in _BOX_EDGES]), c.extra, segment)
+    corner_j = dr.gather(mi.UInt32, mi.UInt32([j for _, j in _BOX_EDGES]), c.extra, segment)
+
+    def corner(k):
+        return mi.Vector3f(dr.select((k & 1) != 0, 1.0, -1.0), dr.select((k & 2) != 0, 1.0, -1.0),
+                           dr.select((k & 4) != 0, 1.0, -1.0))
     ci, cj = corner(corner_i), corner(corner_j)
-    x_seg, dx_seg = dr.lerp(ci, cj, u), cj - ci
+    return dr.lerp(ci, cj, c.u), cj - ci, True
 
-    # Convex polyhedron edge: between the two canonical end points in the data.
+
+def _poly_edge(c):
+    """A convex polyhedron's or mesh's edge: between the two canonical end points in the data."""
+    data = c.data
     end_0, end_1 = mi.Vector3f(data[2], data[3], data[4]), mi.Vector3f(data[5], data[6], data[7])
-    x_poly, dx_poly = dr.lerp(end_0, end_1, u), end_1 - end_0
+    return dr.lerp(end_0, end_1, c.u), end_1 - end_0, True
 
-    # Sphere meets the plane of a face of leaf b: n . y = d in b's frame (y = M_b^-1 (x_w -
-    # t_b)), that is q . (x_w - t_b) = d with q = M_b^-T n; n' . x = d' in a's frame.
-    inv_b = dr.rcp(m_b)
-    q = inv_b.T @ mi.Vector3f(data[2], data[3], data[4])
-    n_plane = m_a.T @ q
-    d_plane = data[5] - dr.dot(q, t_a - t_b)
+
+def _sphere_plane(c):
+    """A sphere meets the plane of a face of leaf b: n . y = d in b's frame (y = M_b^-1 (x_w -
+    t_b)), that is q . (x_w - t_b) = d with q = M_b^-T n; n' . x = d' in a's frame."""
+    n_plane, d_plane = c.face_plane()
     n2 = dr.squared_norm(n_plane)
-    x_sp, dx_sp = _circle(n_plane * (d_plane / n2), dr.safe_sqrt(1 - d_plane * d_plane / n2),
-                          dr.normalize(n_plane), phi)
-    valid_sp = d_plane * d_plane < n2
+    x, dx = _circle(n_plane * (d_plane / n2), dr.safe_sqrt(1 - d_plane * d_plane / n2), dr.normalize(n_plane), c.phi)
+    return x, dx, d_plane * d_plane < n2
 
-    # A cone side meets the same plane (now in the cone's frame, leaf a): a point at angle
-    # phi and height z has radius a + b z, so n . x = d' is linear in z for a given phi.
+
+def _cone_plane(c):
+    """A cone side meets the same plane (in the cone's frame, leaf a): a point at angle phi and
+    height z has radius a + b z, so n . x = d' is linear in z for a given phi; by height,
+    |n_xy| cos(phi - phi0) = (d' - n_z z) / (a + b z), on two branches."""
+    n_plane, d_plane = c.face_plane()
+    a_, b_ = c.cone()
+    phi, extra = c.phi, c.extra
     by_height = (extra & BY_HEIGHT) != 0
     c_phi = n_plane.x * dr.cos(phi) + n_plane.y * dr.sin(phi)
     dc_phi = -n_plane.x * dr.sin(phi) + n_plane.y * dr.cos(phi)
@@ -846,9 +893,8 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     x_ca = radial_a * (a_ + b_ * z_a) + mi.Vector3f(0, 0, z_a)
     dx_ca = dr.two_pi * (mi.Vector3f(-dr.sin(phi), dr.cos(phi), 0) * (a_ + b_ * z_a)
                          + radial_a * (b_ * dz_a) + mi.Vector3f(0, 0, dz_a))
-    #   by height: |n_xy| cos(phi - phi0) = (d' - n_z z) / (a + b z), on two branches.
     n_xy = dr.sqrt(n_plane.x * n_plane.x + n_plane.y * n_plane.y)
-    z_h = 2 * u - 1
+    z_h = 2 * c.u - 1
     cos_h = (d_plane - n_plane.z * z_h) / ((a_ + b_ * z_h) * n_xy)
     side = dr.select((extra & BRANCH) != 0, -1.0, 1.0)
     ang_h = dr.atan2(n_plane.y, n_plane.x) + side * dr.safe_acos(cos_h)
@@ -859,74 +905,105 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     dang = -side * dcos * dr.rsqrt(dr.maximum(1 - cos_h * cos_h, 1e-12))
     dx_ch = 2 * (mi.Vector3f(-dr.sin(ang_h), dr.cos(ang_h), 0) * ((a_ + b_ * z_h) * dang)
                  + radial_h * b_ + mi.Vector3f(0, 0, 1))
-    x_cp = dr.select(by_height, x_ch, x_ca)
-    dx_cp = dr.select(by_height, dx_ch, dx_ca)
-    valid_cp = dr.select(by_height, dr.abs(cos_h) < 1, (dr.abs(z_a) <= 1) & (denom != 0))
+    return (dr.select(by_height, x_ch, x_ca), dr.select(by_height, dx_ch, dx_ca),
+            dr.select(by_height, dr.abs(cos_h) < 1, (dr.abs(z_a) <= 1) & (denom != 0)))
 
-    # A cap (z = -1 or +1, radius r0 or r1) crossed by the plane: a chord.
-    top = (extra & TOP_CAP) != 0
+
+def _cap_plane(c):
+    """A cap (z = -1 or +1, radius data 0 or 1) crossed by the plane: a chord."""
+    n_plane, d_plane = c.face_plane()
+    top = (c.extra & TOP_CAP) != 0
     cap_z = dr.select(top, 1.0, -1.0)
-    cap_r = dr.select(top, r1, r0)
+    cap_r = dr.select(top, c.data[1], c.data[0])
+    n_xy = dr.sqrt(n_plane.x * n_plane.x + n_plane.y * n_plane.y)
     e = d_plane - n_plane.z * cap_z
     foot = mi.Vector3f(n_plane.x, n_plane.y, 0) * (e / (n_xy * n_xy)) + mi.Vector3f(0, 0, cap_z)
     along = mi.Vector3f(-n_plane.y, n_plane.x, 0) / n_xy
     half = dr.safe_sqrt(cap_r * cap_r - e * e / (n_xy * n_xy))
-    x_cap, dx_cap = foot + along * (half * (2 * u - 1)), along * (2 * half)
-    valid_cap = (cap_r * cap_r * n_xy * n_xy > e * e) & (n_xy > 0)
+    return (foot + along * (half * (2 * c.u - 1)), along * (2 * half),
+            (cap_r * cap_r * n_xy * n_xy > e * e) & (n_xy > 0))
 
-    # Two spheres with uniform scales, in world space (then mapped to a's frame, as the rest).
+
+def _sphere_sphere(c):
+    """Two spheres with uniform scales meet in a circle, in world space."""
+    m_a, m_b, t_a, t_b = c.m_a, c.m_b, c.t_a, c.t_b
     r_a, r_b = dr.norm(mi.Vector3f(m_a[0][0], m_a[1][0], m_a[2][0])), dr.norm(mi.Vector3f(m_b[0][0], m_b[1][0],
                                                                                        m_b[2][0]))
     between = t_b - t_a
     dist = dr.norm(between)
     h = (dist * dist + r_a * r_a - r_b * r_b) / (2 * dist)
-    x_ss_w, dx_ss_w = _circle(t_a + between * (h / dist), dr.safe_sqrt(r_a * r_a - h * h), between / dist, phi)
-    valid_ss = (dist < r_a + r_b) & (dist > dr.abs(r_a - r_b))
+    x, dx = _circle(t_a + between * (h / dist), dr.safe_sqrt(r_a * r_a - h * h), between / dist, c.phi)
+    return x, dx, (dist < r_a + r_b) & (dist > dr.abs(r_a - r_b))
 
-    # Two face planes, each q . x = e in world space (q = M^-T n, e = d + q . t): their line,
-    # from its point nearest the origin along the unit direction over [near, far] of the data.
-    q_a = dr.rcp(m_a).T @ mi.Vector3f(data[2], data[3], data[4])
-    q_b = inv_b.T @ mi.Vector3f(data[6], data[7], data[8])
-    e_a, e_b = data[5] + dr.dot(q_a, t_a), data[9] + dr.dot(q_b, t_b)
+
+def _plane_plane(c):
+    """Two face planes, each q . x = e in world space (q = M^-T n, e = d + q . t): their line,
+    from its point nearest the origin along the unit direction over [near, far] of the data."""
+    data = c.data
+    q_a = dr.rcp(c.m_a).T @ mi.Vector3f(data[2], data[3], data[4])
+    q_b = dr.rcp(c.m_b).T @ mi.Vector3f(data[6], data[7], data[8])
+    e_a, e_b = data[5] + dr.dot(q_a, c.t_a), data[9] + dr.dot(q_b, c.t_b)
     line = dr.cross(q_a, q_b)
     ab = dr.dot(q_a, q_b)
     foot = ((e_a * dr.squared_norm(q_b) - e_b * ab) * q_a + (e_b * dr.squared_norm(q_a) - e_a * ab) * q_b) \
         / dr.squared_norm(line)
     unit = dr.normalize(line)
-    x_pp, dx_pp = foot + unit * dr.lerp(data[10], data[11], u), unit * (data[11] - data[10])
+    return foot + unit * dr.lerp(data[10], data[11], c.u), unit * (data[11] - data[10]), True
 
-    # A chord listed on the host (SURFACE_PAIR), moved onto both leaves' attached surfaces.
-    x_pair, dx_pair, valid_pair = _newton_on_pair(kind == SURFACE_PAIR, extra, m_a, t_a, m_b, t_b, data, u)
 
-    x_c = dr.select(kind == SPHERE_SILHOUETTE, x_sil, zero)
-    dx_c = dr.select(kind == SPHERE_SILHOUETTE, dx_sil, zero)
-    for k, x_k, dx_k in ((CONE_SILHOUETTE, x_cone, dx_cone), (CIRCLE, x_rim, dx_rim), (SEGMENT, x_seg, dx_seg),
-                         (SPHERE_PLANE, x_sp, dx_sp), (CONE_PLANE, x_cp, dx_cp), (CAP_PLANE, x_cap, dx_cap),
-                         (POLY_EDGE, x_poly, dx_poly), (TORUS_SILHOUETTE, x_tor, dx_tor),
-                         (QUADRIC_SILHOUETTE, x_quad, dx_quad)):
-        x_c = dr.select(kind == k, x_k, x_c)
-        dx_c = dr.select(kind == k, dx_k, dx_c)
-    x = m_a @ x_c + t_a
-    dx = m_a @ dx_c
-    x = dr.select(kind == SPHERE_SPHERE, x_ss_w, x)
-    dx = dr.select(kind == SPHERE_SPHERE, dx_ss_w, dx)
-    x = dr.select(kind == PLANE_PLANE, x_pp, x)
-    dx = dr.select(kind == PLANE_PLANE, dx_pp, dx)
-    x = dr.select(kind == SURFACE_PAIR, x_pair, x)
-    dx = dr.select(kind == SURFACE_PAIR, dx_pair, dx)
-    # phi = 2 pi u for the circles
-    circle = (kind == SPHERE_SILHOUETTE) | (kind == CIRCLE) | (kind == SPHERE_PLANE) | (kind == SPHERE_SPHERE) | \
-        (kind == TORUS_SILHOUETTE) | (kind == QUADRIC_SILHOUETTE)
+def _surface_pair(c):
+    """A chord listed on the host (SURFACE_PAIR), moved onto both leaves' attached surfaces."""
+    return _newton_on_pair(c.kind == SURFACE_PAIR, c.extra, c.m_a, c.t_a, c.m_b, c.t_b, c.data, c.u)
+
+
+# kind -> (its function, whether it gives world points (else leaf a's canonical ones), and
+# whether it is a circle, whose tangent is per phi = 2 pi u)
+_KINDS = {
+    SPHERE_SILHOUETTE: (_sphere_silhouette, False, True),
+    CONE_SILHOUETTE: (_cone_silhouette, False, False),
+    CIRCLE: (_rim, False, True),
+    SEGMENT: (_box_edge, False, False),
+    SPHERE_PLANE: (_sphere_plane, False, True),
+    CONE_PLANE: (_cone_plane, False, False),
+    CAP_PLANE: (_cap_plane, False, False),
+    POLY_EDGE: (_poly_edge, False, False),
+    TORUS_SILHOUETTE: (_torus_silhouette, False, True),
+    QUADRIC_SILHOUETTE: (_quadric_silhouette, False, True),
+    SPHERE_SPHERE: (_sphere_sphere, True, True),
+    PLANE_PLANE: (_plane_plane, True, False),
+    SURFACE_PAIR: (_surface_pair, True, False),
+}
+
+
+def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
+    """(world point, world tangent dx/du, valid) of curves at u in [0, 1), attached to the
+    matrices (m, t) of the curves' leaves; `data` the curves' DATA_FLOATS floats (`Curves.data`).
+
+    Every lane computes every kind's point (`_KINDS`) and keeps its own: a packet of mixed
+    kinds pays for all of them, and no branch is taken."""
+    c = _CurvePoint(kind, extra, m_a, t_a, m_b, t_b, data, camera, u)
+    zero = mi.Vector3f(0)
+    points = {k: function(c) for k, (function, _, _) in _KINDS.items()}
+    x_c, dx_c, x_w, dx_w = zero, zero, zero, zero
+    valid, circle = mi.Bool(True), mi.Bool(False)
+    for k, (_, world, is_circle) in _KINDS.items():
+        x_k, dx_k, valid_k = points[k]
+        mine = kind == k
+        if world:
+            x_w, dx_w = dr.select(mine, x_k, x_w), dr.select(mine, dx_k, dx_w)
+        else:
+            x_c, dx_c = dr.select(mine, x_k, x_c), dr.select(mine, dx_k, dx_c)
+        if valid_k is not True:
+            valid &= dr.select(mine, valid_k, True)
+        if is_circle:
+            circle |= mine
+    world = kind == SPHERE_SPHERE
+    for k, (_, in_world, _) in _KINDS.items():
+        if in_world and k != SPHERE_SPHERE:
+            world |= kind == k
+    x = dr.select(world, x_w, m_a @ x_c + t_a)
+    dx = dr.select(world, dx_w, m_a @ dx_c)
     dx = dr.select(circle, dr.two_pi * dx, dx)
-    valid &= dr.select(kind == SPHERE_SILHOUETTE, valid_sil, True)
-    valid &= dr.select(kind == CONE_SILHOUETTE, valid_cone, True)
-    valid &= dr.select(kind == TORUS_SILHOUETTE, valid_tor, True)
-    valid &= dr.select(kind == QUADRIC_SILHOUETTE, valid_quad, True)
-    valid &= dr.select(kind == SPHERE_PLANE, valid_sp, True)
-    valid &= dr.select(kind == SPHERE_SPHERE, valid_ss, True)
-    valid &= dr.select(kind == CONE_PLANE, valid_cp, True)
-    valid &= dr.select(kind == CAP_PLANE, valid_cap, True)
-    valid &= dr.select(kind == SURFACE_PAIR, valid_pair, True)
     return x, dx, valid
 
 
