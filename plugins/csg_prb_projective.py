@@ -222,28 +222,24 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         terms = []
         if spp > 0:
             sampler, spp = self.prepare(sensor, 0xFFFFFFFF ^ seed, spp, [])
-            spectrum = self._wavelengths(sensor, sampler)
-            terms.append(self._primary_term(scene, sensor, csg, curves, camera, sampler, spp, *spectrum))
+            ctx = _Pass(scene, sensor, csg, camera, sampler, spp, *self._wavelengths(sensor, sampler))
+            terms.append(self._primary_term(ctx, curves))
             if self.max_depth >= 2:                 # else no light reaches a surface the camera sees
                 for source in _shadow_sources(scene, sampler, camera):
-                    terms.append(self._shadow_term(scene, sensor, csg, curves, camera, source, sampler, spp,
-                                                   *spectrum))
+                    terms.append(self._shadow_term(ctx, curves, source))
                     if static is not None:
-                        terms.append(self._shadow_term(scene, sensor, csg, static, camera, source, sampler, spp,
-                                                       *spectrum))
-            terms = [(*term, spectrum[0]) for term in terms if term is not None]
+                        terms.append(self._shadow_term(ctx, static, source))
+            terms = [(*term, ctx.wavelengths) for term in terms if term is not None]
         if spp_indirect > 0 and self.max_depth >= 3:    # camera, what it sees, what lights that, a light
             # A sampler of its own (forked, seeded apart): one lane per pixel sample.
             sampler, spp_indirect = self.prepare(sensor, 0x9E3779B9 ^ seed, spp_indirect, [])
-            spectrum = self._wavelengths(sensor, sampler)
+            ctx = _Pass(scene, sensor, csg, camera, sampler, spp_indirect, *self._wavelengths(sensor, sampler))
             casters = [curves] if static is None else [curves, static]
-            indirect = [self._indirect_term(scene, sensor, csg, caster, camera, sampler, spp_indirect, *spectrum)
-                        for caster in casters]
+            indirect = [self._indirect_term(ctx, caster) for caster in casters]
             # Every light's shadows, a light at the camera's too: p sees them from elsewhere.
             for source in _shadow_sources(scene, sampler):
-                indirect += [self._indirect_shadow_term(scene, sensor, csg, caster, source, sampler, spp_indirect,
-                                                        *spectrum) for caster in casters]
-            terms += [(*term, spectrum[0]) for term in indirect if term is not None]
+                indirect += [self._indirect_shadow_term(ctx, caster, source) for caster in casters]
+            terms += [(*term, ctx.wavelengths) for term in indirect if term is not None]
         if not terms:
             return None
         for uv, value, valid, wavelengths in terms:
@@ -257,11 +253,12 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             return sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f),
                                              sampler.next_1d() if mi.is_spectral else 0.0)
 
-    def _sample_curves(self, scene, csg, curves, viewpoint, sampler, scale=None, view=None):
+    @staticmethod
+    def _sample_curves(ctx, curves, viewpoint, scale=None, view=None):
         """Points on the curves of the scene's csg shapes (`curves`, a `csg_edges.Curves` per
         shape) as seen from `viewpoint` (the camera, or a light), sampled in proportion to
-        their length over their distance: (x attached to the shapes' parameters, dx/du, valid,
-        kind, pmf, leaf a, solid), or None where there are no curves. `scale`: the length the
+        their length over their distance (`_CurvePoints`, x attached to the shapes'
+        parameters), or None where there are no curves. `scale`: the length the
         visibility test's offsets are fractions of (default: the distance to the viewpoint; a
         directional light's stand-in point is far away). `view`: the viewpoint per lane (a
         point sampled on an area light), where `viewpoint` only sets the sampling weights."""
@@ -274,7 +271,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         # the kernel, and the kernels that trace paths from them were compiled anew each call.
         distribution = mi.DiscreteDistribution(owned(mi.Float, weights.astype(np.float32)))
         with dr.suspend_grad():
-            index, u, pmf = distribution.sample_reuse_pmf(sampler.next_1d())
+            index, u, pmf = distribution.sample_reuse_pmf(ctx.sampler.next_1d())
         kind = dr.gather(mi.UInt32, owned(mi.UInt32, np.concatenate([c.kind for c in curves])), index)
         a = dr.gather(mi.UInt32, owned(mi.UInt32, np.concatenate([c.a for c in curves])), index)
         b = dr.gather(mi.UInt32, owned(mi.UInt32, np.concatenate([c.b for c in curves])), index)
@@ -287,7 +284,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
 
         # The leaves' matrices, attached to each shape's primitive_to_world.
         m_a, t_a, m_b, t_b = mi.Matrix3f(0), mi.Vector3f(0), mi.Matrix3f(0), mi.Vector3f(0)
-        for s, shape in enumerate(csg.csg):
+        for s, shape in enumerate(ctx.csg.csg):
             mine = solid == s
             ma, ta = csg_edges.leaf_rows(shape.primitive_to_world, a, mine)
             mb, tb = csg_edges.leaf_rows(shape.primitive_to_world, b, mine)
@@ -295,13 +292,13 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             m_b, t_b = dr.select(mine, mb, m_b), dr.select(mine, tb, t_b)
         x, dx, valid = csg_edges.evaluate(kind, extra, m_a, t_a, m_b, t_b, data, view, u)
         with dr.suspend_grad():
-            valid &= _seen_from(scene, csg, dr.detach(x), view, scale, _contour(kind), a, solid, valid)
-        return x, dx, valid, kind, pmf, a, solid
+            valid &= _seen_from(ctx.scene, ctx.csg, dr.detach(x), view, scale, _contour(kind), a, solid, valid)
+        return _CurvePoints(x, dx, valid, pmf, kind, a, solid)
 
-    def _difference(self, scene, sampler, camera, sensor, y, dy, pmf, valid, wavelengths, wavelength_weight, spp,
-                    offset=OFFSET, radiance=None, jump=None):
+    def _difference(self, ctx, curve, offset=OFFSET, radiance=None, jump=None):
         """(film position, value, valid) of the boundary term of an image curve through y
-        (attached) with tangent dy/du sampled at `pmf`: the radiance difference across it,
+        (`curve`: `_CurvePoints`, y = curve.x attached) with tangent dy/du sampled at `pmf`:
+        the radiance difference across it,
         from camera rays either side at offsets d and 4 d extrapolated to the curve
         (EXTRAPOLATION: where the surface beside the curve is seen obliquely, a hole's far
         rim, a silhouette, the hit point moves fast with the offset, and one offset alone is
@@ -311,14 +308,16 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         active)`: what the camera sees through `target` (default: the integrator's estimate of
         all of it; a shadow's edge needs only the light that casts it). `jump(y, normal, offset,
         active, radiance)`: the jump across the curve, where not `_jump` of that radiance."""
+        scene, sampler, sensor, camera = ctx.scene, ctx.sampler, ctx.sensor, ctx.camera
+        y, valid = curve.x, curve.valid
         cam = _point(camera)
         with dr.suspend_grad():
-            y_d, dy_d = dr.detach(y), dr.detach(dy)
+            y_d, dy_d = dr.detach(y), dr.detach(curve.dx)
             speed = dr.norm(dy_d)
             tangent = dy_d / speed
             view = dr.normalize(y_d - cam)
             normal = dr.normalize(dr.cross(tangent, view))
-            pdf = pmf / speed                                  # per unit length of the curve
+            pdf = curve.pmf / speed                            # per unit length of the curve
             it = dr.zeros(mi.Interaction3f)
             it.p = y_d
             ds, _ = sensor.sample_direction(it, mi.Point2f(0), valid)
@@ -335,32 +334,30 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             _evaluate(sampler, y_d, dy_d, normal, offset, valid, ds.uv, jacobian, pdf)
             if radiance is None:
                 def radiance(target, active):
-                    return self._radiance(scene, sampler, cam, target, wavelengths, active)
+                    return self._radiance(scene, sampler, cam, target, ctx.wavelengths, active)
             if jump is None:
                 delta = _jump(radiance, y_d, normal, offset, valid)
             else:
                 delta = jump(y_d, normal, offset, valid, radiance)
-            delta *= wavelength_weight
+            delta *= ctx.wavelength_weight
             valid &= dr.any(delta != 0)
-            weight = delta * jacobian / pdf / spp
+            weight = delta * jacobian / pdf / ctx.spp
             _evaluate(sampler, weight, valid)
         # Moving the curve by v . n in the image replaces the outside radiance by the inside.
         return ds.uv, weight * dr.dot(y - y_d, normal), valid
 
-    def _primary_term(self, scene, sensor, csg, curves, camera, sampler, spp, wavelengths, wavelength_weight):
+    def _primary_term(self, ctx, curves):
         """The curves the camera sees directly."""
-        sampled = self._sample_curves(scene, csg, curves, camera, sampler)
+        sampled = self._sample_curves(ctx, curves, ctx.camera)
         if sampled is None:
             return None
-        x, dx, valid, _, pmf, _, _ = sampled
-        cam = _point(camera)
+        cam = _point(ctx.camera)
 
         def jump(y, normal, offset, active, radiance):
-            return self._seen_jump(scene, csg, sampler, cam, y, normal, offset, wavelengths, active, radiance)
-        return self._difference(scene, sampler, camera, sensor, x, dx, pmf, valid, wavelengths, wavelength_weight,
-                                spp, jump=jump)
+            return self._seen_jump(ctx, cam, y, normal, offset, active, radiance)
+        return self._difference(ctx, sampled, jump=jump)
 
-    def _seen_jump(self, scene, csg, sampler, camera, x, normal, offset, wavelengths, active, radiance):
+    def _seen_jump(self, ctx, camera, x, normal, offset, active, radiance):
         """The jump of the radiance the camera sees across the curve point x (the side
         towards -normal minus the side towards +normal). Camera rays passing x at `offset`
         either side name the faces there.
@@ -382,7 +379,8 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         behind (where a hole's rim meets the contour of its sphere), and no extrapolation in
         the offset mends that. Contours (the face at x seen edge-on) keep `_jump` of rays
         either side, extrapolated to the curve: `radiance(target, active)`, what the camera sees
-        through `target` (`_difference`'s)."""
+        through `target` (`_difference`'s). `camera`: the camera's point."""
+        scene, csg, sampler, wavelengths = ctx.scene, ctx.csg, ctx.sampler, ctx.wavelengths
         at_x, distance, sides, near, on_boundary, normals = _faces_beside(csg, camera, x, normal, offset, active)
         at_x.wavelengths = wavelengths
         crease = on_boundary & near[0] & near[1]
@@ -409,16 +407,16 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         beside = _jump(radiance, x, normal, offset, on_boundary & ~exact)
         return dr.select(exact, leaving[0] - leaving[1], beside)
 
-    def _shadow_term(self, scene, sensor, csg, casters, camera, source, sampler, spp, wavelengths,
-                     wavelength_weight):
+    def _shadow_term(self, ctx, casters, source):
         """The edges of the shadows the curves `casters` cast from a light `source` (a point
         per lane, `_Source`; `_shadow_edges`) as the camera sees them: the difference across
         one is the light of that light alone. Mitsuba's shapes' curves (`csg_edges.StaticCurves`)
         count where they cast onto a csg shape (elsewhere their shadows stand still)."""
-        edges = self._shadow_edges(scene, csg, casters, source, sampler)
+        edges = self._shadow_edges(ctx, casters, source)
         if edges is None:
             return None
-        cam = _point(camera)
+        scene, csg = ctx.scene, ctx.csg
+        cam = _point(ctx.camera)
         with dr.suspend_grad():
             valid = edges.valid & edges.on_csg if edges.static else edges.valid
             # A camera ray to y0 that passes the casting point itself sees the shadow's edge
@@ -427,11 +425,10 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             valid &= _edge_in_view(scene, csg, cam, edges.x, edges.receiver.p, valid, SHADOW_GAP)
 
         def light_of_source(target, active):
-            return _direct_light(scene, csg, cam, target, source, wavelengths, active)
-        return self._difference(scene, sampler, camera, sensor, edges.y, edges.dy, edges.pmf, valid, wavelengths,
-                                wavelength_weight, spp, SHADOW_OFFSET, light_of_source)
+            return _direct_light(scene, csg, cam, target, source, ctx.wavelengths, active)
+        return self._difference(ctx, _CurvePoints(edges.y, edges.dy, valid, edges.pmf), SHADOW_OFFSET, light_of_source)
 
-    def _shadow_edges(self, scene, csg, casters, source, sampler):
+    def _shadow_edges(self, ctx, casters, source):
         """The edges of the shadows the curves `casters` cast from a light `source` (`_ShadowEdges`,
         or None where there are no curves): a curve point x the light's point l sees casts the
         edge of a shadow where the light's ray through x, continued, meets a surface (y0,
@@ -446,18 +443,20 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
 
         `casters`: the csg shapes' curves (a `csg_edges.Curves` per shape), or those of
         Mitsuba's shapes (`csg_edges.StaticCurves`), which stand still."""
+        scene, csg = ctx.scene, ctx.csg
         static = isinstance(casters, csg_edges.StaticCurves)
         parallel = source.away is not None
         size = float(np.linalg.norm(np.array(scene.bbox().extents())))
         lamp = source.lamp
         scale = size if parallel else None
         if static:
-            sampled = _sample_static(scene, csg, casters, source.viewpoint, sampler, scale, lamp)
+            sampled = _sample_static(ctx, casters, source.viewpoint, scale, lamp)
         else:
-            sampled = self._sample_curves(scene, csg, casters, source.viewpoint, sampler, scale, lamp)
+            sampled = self._sample_curves(ctx, casters, source.viewpoint, scale, lamp)
         if sampled is None:
             return None
-        x, dx, valid, kind, pmf, a, solid = sampled
+        x, dx, valid, kind, pmf = sampled.x, sampled.dx, sampled.valid, sampled.kind, sampled.pmf
+        a, solid = sampled.leaf, sampled.solid
         with dr.suspend_grad():
             x_d, dx_d = dr.detach(x), dr.detach(dx)
             away = source.away if parallel else dr.normalize(x_d - lamp)
@@ -483,7 +482,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             y = lamp + (x - lamp) * (dr.dot(y0_a - lamp, n_a) / dr.dot(x - lamp, n_a))
         return _ShadowEdges(x_d, y, dy, receiver, bsdf, on_csg, pmf, valid, static)
 
-    def _indirect_term(self, scene, sensor, csg, casters, camera, sampler, spp, wavelengths, wavelength_weight):
+    def _indirect_term(self, ctx, casters):
         """The curves as seen from the surfaces the camera sees. A pixel sample's camera ray
         meets a surface at p (BSDF f, not a delta); the light p reflects towards the camera
         is the integral over directions w of f cos L(p, w), and a curve point x that p sees,
@@ -504,27 +503,25 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         p is the camera's surface point, or where max_depth allows, a surface point deeper
         along the sample's path (`_path_vertex`)."""
         static = isinstance(casters, csg_edges.StaticCurves)
-        vertex = self._path_vertex(scene, sensor, csg, sampler, wavelengths)
+        vertex = self._path_vertex(ctx)
         valid = vertex.valid & vertex.on_csg if static else vertex.valid
         p = vertex.si.p
         # Curves as seen from p (silhouettes relative to p), weighed as seen from the camera.
         if static:
-            sampled = _sample_static(scene, csg, casters, camera, sampler, None, p)
+            sampled = _sample_static(ctx, casters, ctx.camera, None, p)
         else:
-            sampled = self._sample_curves(scene, csg, casters, camera, sampler, None, p)
+            sampled = self._sample_curves(ctx, casters, ctx.camera, None, p)
         if sampled is None:
             return None
-        x, dx, seen, _, pmf, _, _ = sampled
-        valid &= seen
+        valid &= sampled.valid
 
         def jump(x_d, normal, distance, active):
             def radiance(target, active):
-                return self._reflected_radiance(scene, sampler, vertex.si, target, active, vertex.depth)
+                return self._reflected_radiance(ctx.scene, ctx.sampler, vertex.si, target, active, vertex.depth)
             return _jump(radiance, x_d, normal, INDIRECT_OFFSET * distance, active)
-        return self._seen_from_vertex(vertex, x, dx, pmf, valid, jump, spp, wavelength_weight)
+        return self._seen_from_vertex(ctx, vertex, _CurvePoints(sampled.x, sampled.dx, valid, sampled.pmf), jump)
 
-    def _indirect_shadow_term(self, scene, sensor, csg, casters, source, sampler, spp, wavelengths,
-                              wavelength_weight):
+    def _indirect_shadow_term(self, ctx, casters, source):
         """The edges of the shadows the curves `casters` cast from a light `source`
         (`_shadow_edges`) as the surfaces the camera sees see them: a sphere's shadow on a lit
         wall moves, and so does the light the wall reflects onto the floor the camera sees.
@@ -533,8 +530,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         (`_shadow_jump`). Mitsuba's shapes' curves count where they cast onto a csg shape
         or p is on one (else their shadows stand still relative to p). p as the indirect
         term's (`_path_vertex`)."""
-        vertex = self._path_vertex(scene, sensor, csg, sampler, wavelengths)
-        edges = self._shadow_edges(scene, csg, casters, source, sampler)
+        scene, csg = ctx.scene, ctx.csg
+        vertex = self._path_vertex(ctx)
+        edges = self._shadow_edges(ctx, casters, source)
         if edges is None:
             return None
         p = vertex.si.p
@@ -547,21 +545,21 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             valid &= _edge_in_view(scene, csg, p, edges.x, edges.receiver.p, valid, SHADOW_GAP)
 
         def jump(y, normal, distance, active):
-            return _shadow_jump(scene, csg, edges, source, p, normal, wavelengths, active)
-        return self._seen_from_vertex(vertex, edges.y, edges.dy, edges.pmf, valid, jump, spp, wavelength_weight)
+            return _shadow_jump(scene, csg, edges, source, p, normal, ctx.wavelengths, active)
+        return self._seen_from_vertex(ctx, vertex, _CurvePoints(edges.y, edges.dy, valid, edges.pmf), jump)
 
-    def _camera_vertex(self, scene, sensor, csg, sampler, wavelengths):
+    def _camera_vertex(self, ctx):
         """A camera ray per pixel sample and the surface it meets (`_Vertex`): only a smooth
         BSDF there (not a delta) reflects light from a region of directions."""
         with dr.resume_grad():
-            ray, ray_weight, pos = self.sample_rays(scene, sensor, sampler)
+            ray, ray_weight, pos = self.sample_rays(ctx.scene, ctx.sensor, ctx.sampler)
         ray_weight = dr.detach(ray_weight)
         ray = mi.Ray3f(dr.detach(ray))
-        ray.wavelengths = wavelengths
-        return _vertex_at(scene, csg, ray, mi.Bool(True), pos, ray_weight)
+        ray.wavelengths = ctx.wavelengths
+        return _vertex_at(ctx.scene, ctx.csg, ray, mi.Bool(True), pos, ray_weight)
 
     @dr.syntax
-    def _path_vertex(self, scene, sensor, csg, sampler, wavelengths):
+    def _path_vertex(self, ctx):
         """A surface point along a camera path (`_Vertex`): where max_depth is 3, the camera's
         (`_camera_vertex`); above, the one at depth k (the camera's surface point is 1),
         chosen per lane: 1 with probability 1/2, else one of 2 ... K uniformly, K =
@@ -575,10 +573,11 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         directions stay detached (also from BSDF and Mitsuba shape parameters), so that only
         the last point moves with the shapes, along its ray (as csg_prb's interior
         derivatives parametrize paths)."""
+        scene, sensor, csg, sampler, wavelengths = ctx.scene, ctx.sensor, ctx.csg, ctx.sampler, ctx.wavelengths
         infinite = self.max_depth == UNBOUNDED_DEPTH
         deepest = min(DEEPEST_VERTEX, self.max_depth - 2)
         if dr.hint(deepest <= 1, mode="scalar"):
-            return self._camera_vertex(scene, sensor, csg, sampler, wavelengths)
+            return self._camera_vertex(ctx)
         with dr.resume_grad():
             ray, ray_weight, pos = self.sample_rays(scene, sensor, sampler)
         ray = mi.Ray3f(dr.detach(ray))
@@ -604,15 +603,17 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         return _vertex_at(scene, csg, ray, reached, pos, weight, None if infinite else self.max_depth - k)
 
     @staticmethod
-    def _seen_from_vertex(vertex, x, dx, pmf, valid, jump, spp, wavelength_weight):
-        """(film position, value, valid) of a discontinuity point x (attached; tangent dx/du,
-        sampled at `pmf` per unit u) that a surface point p along a camera path (`vertex`) sees
+    def _seen_from_vertex(ctx, vertex, curve, jump):
+        """(film position, value, valid) of a discontinuity point x (`curve`: `_CurvePoints`, x
+        attached; tangent dx/du, sampled at `pmf` per unit u) that a surface point p along a
+        camera path (`vertex`) sees
         at distance r: moving x by dx (p by dp) moves the boundary it draws on p's sphere of
         directions by ((dx - dp) . m) / r across itself (m normal to the ray p -> x and to the
         curve's tangent t), and the curve's length there is |t x w| / r per unit length of the
         curve: the pixel's derivative is the path's weight up to p times p's f cos times the
         jump of the light arriving at p across x times both, over the pdf of x. `jump(x, m, r,
         active)`: that jump, the side towards -m minus the side towards +m."""
+        x, dx, pmf, valid = curve.x, curve.dx, curve.pmf, curve.valid
         si, p = vertex.si, vertex.si.p
         with dr.suspend_grad():
             x_d, dx_d = dr.detach(x), dr.detach(dx)
@@ -630,9 +631,9 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
             valid &= dr.any(reflected != 0)
             dr.eval(x_d, dx_d, normal, distance, valid, reflected, sine, pdf, vertex.pos, vertex.path_weight, si,
                     vertex.bsdf, vertex.p_a, *([] if vertex.depth is None else [vertex.depth]))   # as in `_difference`
-            delta = jump(x_d, normal, distance, valid) * wavelength_weight
+            delta = jump(x_d, normal, distance, valid) * ctx.wavelength_weight
             valid &= dr.any(delta != 0)
-            weight = vertex.path_weight * reflected * delta * sine / (dr.square(distance) * pdf * spp)
+            weight = vertex.path_weight * reflected * delta * sine / (dr.square(distance) * pdf * ctx.spp)
             weight = dr.select(valid, weight, 0)
             dr.eval(weight, valid)
         motion = (x - x_d) - (vertex.p_a - p)
@@ -673,6 +674,28 @@ DEEPEST_VERTEX = 8
 # A directional light's curves are seen from a point this many scene sizes up its beam:
 # their contours then lie within ~1e-5 of the size of the parallel view's.
 FAR = 1e5
+
+
+class _Pass:
+    """What every boundary term of one sampling pass reads: the scene, its sensor, its csg
+    shapes (`SceneCSG`), the camera's position (numpy), the pass's sampler and samples per
+    pixel, and the wavelengths its samples carry with their weight."""
+
+    def __init__(self, scene, sensor, csg, camera, sampler, spp, wavelengths, wavelength_weight):
+        self.scene, self.sensor, self.csg, self.camera = scene, sensor, csg, camera
+        self.sampler, self.spp = sampler, spp
+        self.wavelengths, self.wavelength_weight = wavelengths, wavelength_weight
+
+
+class _CurvePoints:
+    """Points sampled on discontinuity curves (`_sample_curves`, `_sample_static`), or on the
+    edges of shadows: the point x and its tangent dx/du (attached where the curve moves),
+    validity, the pmf it was sampled with, and for curves of csg shapes their kind, leaf a
+    and solid (None where not needed)."""
+
+    def __init__(self, x, dx, valid, pmf, kind=None, leaf=None, solid=None):
+        self.x, self.dx, self.valid, self.pmf = x, dx, valid, pmf
+        self.kind, self.leaf, self.solid = kind, leaf, solid
 
 
 class _Source:
@@ -938,13 +961,13 @@ def _first_hit_past_own(scene, csg, origin, direction, length, scale, contour, l
     return found, start
 
 
-def _sample_static(scene, csg, static, viewpoint, sampler, scale, view):
+def _sample_static(ctx, static, viewpoint, scale, view):
     """Points on the curves of Mitsuba's shapes (`csg_edges.StaticCurves`) that the lamp `view`
     (per lane) sees, sampled in proportion to their length over their distance from
-    `viewpoint`: the tuple of `_sample_curves`, x detached (they do not move)."""
+    `viewpoint`: `_CurvePoints` as `_sample_curves` gives them, x detached (they do not move)."""
     distribution = mi.DiscreteDistribution(owned(mi.Float, static.weight(viewpoint).astype(np.float32)))
     with dr.suspend_grad():
-        index, u, pmf = distribution.sample_reuse_pmf(sampler.next_1d())
+        index, u, pmf = distribution.sample_reuse_pmf(ctx.sampler.next_1d())
 
         def column(values, kind=mi.Float):
             return dr.gather(kind, owned(kind, np.ascontiguousarray(values)), index)
@@ -955,8 +978,8 @@ def _sample_static(scene, csg, static, viewpoint, sampler, scale, view):
         x, dx, valid = csg_edges.evaluate(kind, extra, m, t, m, t, data, view, u)
         valid &= dr.norm(dx) > 0
         none = dr.zeros(mi.UInt32, dr.width(x))
-        valid &= _seen_from(scene, csg, x, view, scale, mi.Bool(False), none, none, valid, mesh_edge=True)
-    return x, dx, valid, kind, pmf, none, none
+        valid &= _seen_from(ctx.scene, ctx.csg, x, view, scale, mi.Bool(False), none, none, valid, mesh_edge=True)
+    return _CurvePoints(x, dx, valid, pmf, kind, none, none)
 
 
 def _seen_from(scene, csg, x, view, scale, contour, leaf, solid, active, mesh_edge=False):
