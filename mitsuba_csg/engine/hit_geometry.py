@@ -34,8 +34,9 @@ def _face_plane(m, planes, shape, plane_start, info, active):
 
 def _hit_in_primitive(tree, prim, info, o, d, t, active):
     """The hit at o + t d in primitive `prim`'s canonical frame: (rows of scene -> canonical,
-    shape, params, plane start, canonical point, face, face plane, surface gradient there,
-    the ray's unit direction in the scene frame, the face's implicit function there)."""
+    the hit there (`shapes.CanonicalHit`: point, shape, params, face, face plane, surface
+    gradient, ...), the ray's unit direction in the scene frame, the face's implicit function
+    there)."""
     b = tree.b
     rows, shape, param, plane_start, _ = gather_prim(b, tree, prim, active)
     o, d, k = scene_rays(tree, o, d)
@@ -44,7 +45,9 @@ def _hit_in_primitive(tree, prim, info, o, d, t, active):
     x = b.Array3f(dr.dot(rows[0], p4), dr.dot(rows[1], p4), dr.dot(rows[2], p4))
     face, plane = _face_plane(b.module, tree.planes, shape, plane_start, info, active)
     g, grad = surface_function(b.module, shape, face, param, plane, x)
-    return rows, shape, param, plane_start, x, face, plane, grad, d, g
+    hit = CanonicalHit(b, x, shape, param, face, plane, grad, tree=tree, plane_start=plane_start, info=info,
+                       active=active)
+    return rows, hit, d, g
 
 
 def _solid_normal(b, rows, n_local, info, d, active):
@@ -61,8 +64,8 @@ def hit_normal(tree, prim, info, o, d, t, active):
     """World-space outward unit normal of the CSG solid at o + t d on primitive `prim`
     (zero where not `active`)."""
     def normal(prim, info, o, d, t, active):
-        rows, _, _, _, _, _, _, n_local, d_scene, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
-        return _solid_normal(tree.b, rows, n_local, info, d_scene, active)
+        rows, hit, d_scene, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
+        return _solid_normal(tree.b, rows, hit.grad, info, d_scene, active)
 
     def none(prim, info, o, d, t, active):
         return dr.zeros(tree.b.Array3f, dr.width(t))
@@ -78,9 +81,9 @@ def face_at(tree, prim, info, o, d, t, active):
     of its implicit function in the primitive's canonical frame (about the distance from the
     surface there, in units of the canonical shape, near it). Tells whether a face found
     along one ray passes through a point of another (the point of an edge)."""
-    rows, _, _, _, _, _, _, grad, d, g = _hit_in_primitive(tree, prim, info, o, d, t, active)
-    residual = dr.select(active, dr.abs(g) * dr.rsqrt(dr.squared_norm(grad)), dr.inf)
-    return _solid_normal(tree.b, rows, grad, info, d, active), residual
+    rows, hit, d, g = _hit_in_primitive(tree, prim, info, o, d, t, active)
+    residual = dr.select(active, dr.abs(g) * dr.rsqrt(dr.squared_norm(hit.grad)), dr.inf)
+    return _solid_normal(tree.b, rows, hit.grad, info, d, active), residual
 
 
 def attached_hit(to_world, tree, prim, info, t, o, d, active):
@@ -130,9 +133,7 @@ def surface_coordinates(tree, prim, info, o, d, t, active):
     """
     b = tree.b
     m = b.module
-    rows, shape, param, plane_start, x, face, plane, grad, _, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
-    hit = CanonicalHit(b, x, shape, param, face, plane, grad, tree=tree, plane_start=plane_start, info=info,
-                       active=active)
+    rows, hit, _, _ = _hit_in_primitive(tree, prim, info, o, d, t, active)
     uv, du, dv = surface_coordinates_local(hit)
     # Tangents map with canonical -> world: the inverse of the rows' linear part, then the
     # scene frame's scale.
