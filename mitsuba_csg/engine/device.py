@@ -307,14 +307,26 @@ def stack_size_class(height: int) -> int:
     return max(8, 1 << max(0, int(height) - 1).bit_length())
 
 
-def gather_prim(b, tree, prim, active=True):
-    """(rows of world -> canonical, shape, params, plane start, plane count) of primitives."""
+class PrimRecord:
+    """Primitives' records as gathered per lane (`gather_prim`): the rows of their world ->
+    canonical maps, shape codes, two shape parameters, and first plane and plane count (convex
+    shapes and meshes). A plain class: read by the shapes' functions, not carried in loops."""
+
+    __slots__ = ("rows", "shape", "param", "plane_start", "plane_count")
+
+    def __init__(self, rows, shape, param, plane_start, plane_count):
+        self.rows, self.shape, self.param, self.plane_start, self.plane_count = rows, shape, param, plane_start, \
+            plane_count
+
+
+def gather_prim(b, tree, prim, active=True) -> PrimRecord:
+    """The records (`PrimRecord`) of primitives."""
     rec = dr.gather(b.module.ArrayXf, tree.prim_record, prim, active, shape=(K.PRIM_RECORD_FLOATS, dr.width(prim)))
     rows = [b.Array4f(rec[4 * r], rec[4 * r + 1], rec[4 * r + 2], rec[4 * r + 3]) for r in range(3)]
     start = dr.reinterpret_array(b.UInt32, rec[K.PRIM_PLANE_START])
     word = dr.reinterpret_array(b.UInt32, rec[K.PRIM_COUNT_SHAPE])
     params = (rec[K.PRIM_PARAMS], rec[K.PRIM_PARAMS + 1])
-    return rows, K.record_shape(word), params, start, K.record_plane_count(word)
+    return PrimRecord(rows, K.record_shape(word), params, start, K.record_plane_count(word))
 
 
 class Untraversed:

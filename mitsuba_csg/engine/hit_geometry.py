@@ -38,7 +38,8 @@ def _hit_in_primitive(tree, prim, info, o, d, t, active):
     gradient, ...), the ray's unit direction in the scene frame, the face's implicit function
     there)."""
     b = tree.b
-    rows, shape, param, plane_start, _ = gather_prim(b, tree, prim, active)
+    record = gather_prim(b, tree, prim, active)
+    rows, shape, param, plane_start = record.rows, record.shape, record.param, record.plane_start
     o, d, k = scene_rays(tree, o, d)
     p = o + (t * k) * d
     p4 = b.Array4f(p.x, p.y, p.z, 1.0)
@@ -101,9 +102,9 @@ def attached_hit(to_world, tree, prim, info, t, o, d, active):
     o_c = inv @ (m.Array3f(o) - centre)
     d_c = inv @ m.Array3f(d)
     b = tree.b
-    _, shape, param, plane_start, _ = gather_prim(b, tree, b.UInt32(dr.detach(prim)), b.Bool(dr.detach(active)))
-    shape, plane_start = m.UInt32(shape), m.UInt32(plane_start)
-    param = (m.Float(param[0]), m.Float(param[1]))
+    record = gather_prim(b, tree, b.UInt32(dr.detach(prim)), b.Bool(dr.detach(active)))
+    shape, plane_start = m.UInt32(record.shape), m.UInt32(record.plane_start)
+    param = (m.Float(record.param[0]), m.Float(record.param[1]))
     info = m.UInt32(dr.detach(info))
     face, plane = _face_plane(m, m.Float(tree.planes), shape, plane_start, info, active)
     t_det = m.Float(dr.detach(t))

@@ -52,18 +52,17 @@ def leaf_hit(tree, ray, node, flags, prim, t_start):
     """(Hit, non-convex) of a leaf node's first event after t_start, complement applied
     (`flags`, `prim`: the leaf's node record)."""
     b = tree.b
-    rows, shape, param, plane_start, plane_count = gather_prim(b, tree, prim)
+    record = gather_prim(b, tree, prim)
     # A mesh's crossings within a tie window after t_start are the event at t_start again.
     mesh = (tree.triangles, tree.mesh_nodes, 2.0 * ray.tie) if tree.has_meshes else None
-    t, face, cls, slope = shapes.first_event(b, shape, rows, param, tree.planes, plane_start, plane_count, ray.o,
-                                             ray.d, t_start, mesh, tree.shape_kinds)
+    t, face, cls, slope = shapes.first_event(b, record, tree.planes, ray.o, ray.d, t_start, mesh, tree.shape_kinds)
     complemented = K.flags_negative(flags)
     # A complemented leaf swaps enter/exit; missing it means being inside it forever.
     cls = dr.select(complemented, complement_class(cls), cls)
     non_convex = dr.zeros(b.Bool, dr.width(t))
     for code in shapes.NON_CONVEX_CODES:
         if code in tree.shape_kinds:
-            non_convex |= shape == code
+            non_convex |= record.shape == code
     info = K.hit_info(cls, dr.select(complemented, FLIP_BIT, 0), face, slope)
     return b.Hit(t, b.UInt32(node), info), non_convex
 

@@ -52,22 +52,22 @@ _INTERVAL_NORMAL_ROWS = tuple(row for row in SHAPES if row.interval_normals is n
 _EVENT_ROWS = tuple(row for row in SHAPES if row.event is not None)
 
 
-def first_event(b, shape, xf_rows, param, plane_buf, plane_start, plane_count, o_world, d_world, t_start,
-                mesh=None, kinds=None):
+def first_event(b, prim, plane_buf, o_world, d_world, t_start, mesh=None, kinds=None):
     """(t, face, class, slope) of the first boundary event of one primitive after t_start (per lane).
 
-    `slope` is the event's SLOPE exponent (`engine.layout`): how steeply the ray meets the
-    surface there, which scales how far in t float32 rounding can move the event. `mesh` is
-    (triangle buffer, mesh node buffer, skip) for mesh leaves (`mesh.event`).
+    `prim` is the primitives' records (`engine.device.PrimRecord`), `plane_buf` the planes
+    they point into. `slope` is the event's SLOPE exponent (`engine.layout`): how steeply the
+    ray meets the surface there, which scales how far in t float32 rounding can move the
+    event. `mesh` is (triangle buffer, mesh node buffer, skip) for mesh leaves (`mesh.event`).
     """
+    xf_rows, shape, param = prim.rows, prim.shape, prim.param
     o = b.Array3f(dr.dot(xf_rows[0], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)),
                   dr.dot(xf_rows[1], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)),
                   dr.dot(xf_rows[2], b.Array4f(o_world.x, o_world.y, o_world.z, 1.0)))
     d = b.Array3f(dr.dot(b.Array3f(xf_rows[0].x, xf_rows[0].y, xf_rows[0].z), d_world),
                   dr.dot(b.Array3f(xf_rows[1].x, xf_rows[1].y, xf_rows[1].z), d_world),
                   dr.dot(b.Array3f(xf_rows[2].x, xf_rows[2].y, xf_rows[2].z), d_world))
-    t, face, cls, plane_normal = _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d,
-                                                    t_start, mesh, kinds)
+    t, face, cls, plane_normal = _first_event_local(b, prim, plane_buf, o, d, t_start, mesh, kinds)
     # A miss has no surface point: its slope is never read (a miss's t is inf wherever a tie
     # window meets it), and packets whose lanes all missed skip the surface function.
     slope = dr.if_stmt((b, shape, face, param, plane_normal, o, d, t, xf_rows, d_world, kinds), dr.isfinite(t),
@@ -99,9 +99,10 @@ def _slope_exponent(b, cos):
 
 
 @dr.syntax
-def _first_event_local(b, shape, param, plane_buf, plane_start, plane_count, o, d, t_start, mesh, kinds):
+def _first_event_local(b, prim, plane_buf, o, d, t_start, mesh, kinds):
     """Each present shape in a branch of its own: an interval (its first event after t_start
     taken once for all of them), an interval with its faces' normals, or an event of its own."""
+    shape, param, plane_start, plane_count = prim.shape, prim.param, prim.plane_start, prim.plane_count
     width = dr.width(t_start)
     near = dr.full(b.Float, dr.inf, width)
     far = dr.full(b.Float, -dr.inf, width)
