@@ -55,6 +55,8 @@ still missing).
 """
 from __future__ import annotations
 
+import weakref
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -205,12 +207,33 @@ class StaticCurves:
         return self.length / np.maximum(np.linalg.norm(self.centre - viewpoint, axis=1), 1e-9)
 
 
+# Curves of recently rendered shapes by the identity of their prepared trees, each with a weak
+# reference that tells the tree it was listed for (an id may be reused once a tree is gone; the
+# trees themselves are not kept alive). Views of one scene, and renders between parameter
+# updates (which replace the prepared tree), list a shape's curves once.
+_CURVES_CACHE: dict = {}
+_CURVES_CACHE_SIZE = 8
+
+
+def curves_of(shape) -> "Curves":
+    """The `Curves` of a csg shape, listed once per prepared tree."""
+    prepared = shape.prepared
+    entry = _CURVES_CACHE.get(id(prepared))
+    if entry is not None and entry[0]() is prepared:
+        return entry[1]
+    curves = Curves(shape)
+    if len(_CURVES_CACHE) >= _CURVES_CACHE_SIZE:
+        _CURVES_CACHE.pop(next(iter(_CURVES_CACHE)))
+    _CURVES_CACHE[id(prepared)] = (weakref.ref(prepared), curves)
+    return curves
+
+
 class Curves:
     """The curves of one csg shape: per curve its kind, leaves a and b, an extra int (edge,
     branch) and DATA_FLOATS of data (the cone radii of leaf a, then a face plane of leaf b, an
     edge's end points, or two face planes and the line's parameter range). Listed once per
-    shape and render: only `weight(viewpoint)`, the sampling weights (about each curve's
-    length in the image), depends on where the curves are seen from."""
+    prepared tree of the shape (`curves_of`): only `weight(viewpoint)`, the sampling weights
+    (about each curve's length in the image), depends on where the curves are seen from."""
 
     def __init__(self, shape):
         flat = shape.prepared.flat

@@ -214,7 +214,7 @@ class CSGPRBProjectiveIntegrator(CSGPRBIntegrator):
         block = film.create_block(normalize=True)
         block.set_coalesce(block.coalesce() and min(s for s in (spp, spp_indirect) if s > 0) >= 4)
         # The curves, listed once; each viewpoint (the camera, each light) only weighs them.
-        curves = [csg_edges.Curves(shape) for shape in csg.csg]
+        curves = [csg_edges.curves_of(shape) for shape in csg.csg]
         # Mitsuba's shapes stand still, but their shadows on moving csg shapes move, and so
         # do they relative to a moving csg surface that sees them.
         static = csg_edges.StaticCurves(scene) if csg.has_others else None

@@ -366,6 +366,32 @@ def test_traverse_exposes_primitives_and_update_moves_them():
     assert hits.t[0] == pytest.approx(4.0, rel=1e-5)
 
 
+
+def test_an_update_keeps_the_traversal_options_and_relists_the_curves():
+    """A parameter update prepares the moved model as it was prepared (traversal options,
+    iteration bound); the boundary terms' curves are listed once per prepared tree, again
+    after an update (they follow the new geometry)."""
+    from mitsuba_csg.engine.options import TraversalOptions
+    from mitsuba_csg.plugins import csg_edges
+    scene = mi.load_dict(scene_dict(csg_shape(csg.Box(2.0) - csg.Sphere(1.2)), {"type": "csg_aov", "aovs": "dd:depth"},
+                                    spp=1))
+    shape = [s for s in scene.shapes() if "CSGShape" in str(s)][0]
+    options = TraversalOptions(sets=False, near_first=False)
+    shape.prepared = csg.prepare(shape.prepared.flat, traversal=options, max_iterations=5000)
+    curves = csg_edges.curves_of(shape)
+    assert csg_edges.curves_of(shape) is curves
+    params = mi.traverse(scene)
+    w = np.array(params["object.primitive_to_world"])
+    w[12 + 3] += 5.0                              # move the sphere (the second primitive) out of the box
+    params["object.primitive_to_world"] = mi.Float(w)
+    params.update()
+    assert shape.prepared.tree.options is options and shape.prepared.max_iterations == 5000
+    moved = csg_edges.curves_of(shape)
+    # Listed for the new geometry: the sphere no longer meets the box's faces.
+    assert moved is not curves and moved.count < curves.count
+    assert not np.any(moved.kind == csg_edges.SPHERE_PLANE) and np.any(curves.kind == csg_edges.SPHERE_PLANE)
+
+
 # ---- Gradients ----
 
 def _erode(mask):
