@@ -37,6 +37,7 @@ def test_generators(make, prims):
     ("accuracy.py", ["--models", "2", "--rays", "16"]),
     ("scaling.py", ["--quick"]),
     ("traversal_mechanisms.py", ["--scenes", "cheese-500", "--size", "32x18", "--repeats", "1"]),
+    ("commit_ab.py", ["--base", "HEAD", "--scenes", "cheese-500", "--size", "32x18", "--repeats", "1", "--rounds", "1"]),
     ("mesh_leaves.py", ["--triangles", "2000", "--holes", "20", "--size", "32x18", "--repeats", "1"]),
     ("gradient_cost.py", ["--size", "16x12", "--spp", "2", "--repeats", "1"]),
     ("several_shapes.py", ["--counts", "2,3", "--holes", "5", "--size", "32x18", "--repeats", "1"]),
