@@ -1006,24 +1006,20 @@ def evaluate(kind, extra, m_a, t_a, m_b, t_b, data, camera, u):
     kinds pays for all of them, and no branch is taken."""
     c = _CurvePoint(kind, extra, m_a, t_a, m_b, t_b, data, camera, u)
     zero = mi.Vector3f(0)
-    points = {k: function(c) for k, (function, _, _) in _KINDS.items()}
     x_c, dx_c, x_w, dx_w = zero, zero, zero, zero
-    valid, circle = mi.Bool(True), mi.Bool(False)
-    for k, (_, world, is_circle) in _KINDS.items():
-        x_k, dx_k, valid_k = points[k]
+    valid, world, circle = mi.Bool(True), mi.Bool(False), mi.Bool(False)
+    for k, (function, in_world, is_circle) in _KINDS.items():
+        x_k, dx_k, valid_k = function(c)
         mine = kind == k
-        if world:
+        if in_world:
             x_w, dx_w = dr.select(mine, x_k, x_w), dr.select(mine, dx_k, dx_w)
+            world |= mine
         else:
             x_c, dx_c = dr.select(mine, x_k, x_c), dr.select(mine, dx_k, dx_c)
         if valid_k is not True:
             valid &= dr.select(mine, valid_k, True)
         if is_circle:
             circle |= mine
-    world = kind == SPHERE_SPHERE
-    for k, (_, in_world, _) in _KINDS.items():
-        if in_world and k != SPHERE_SPHERE:
-            world |= kind == k
     x = dr.select(world, x_w, m_a @ x_c + t_a)
     dx = dr.select(world, dx_w, m_a @ dx_c)
     dx = dr.select(circle, dr.two_pi * dx, dx)

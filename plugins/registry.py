@@ -73,10 +73,10 @@ def integrator_class(name: str) -> type:
     return _CLASS[name]
 
 
-def described(conjunction: str = "or") -> str:
+def described() -> str:
     """'csg_aov (buffers), csg_path (path tracing), ... or csg_volpath (media)'."""
     items = [f"{info.name} ({info.summary})" for info in integrators().values()]
-    return ", ".join(items[:-1]) + f" {conjunction} " + items[-1] if len(items) > 1 else "".join(items)
+    return ", ".join(items[:-1]) + " or " + items[-1] if len(items) > 1 else "".join(items)
 
 
 def counterpart(class_name: str) -> str | None:

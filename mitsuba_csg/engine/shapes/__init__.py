@@ -22,7 +22,7 @@ import pkgutil
 import drjit as dr
 import numpy as np
 
-from ..layout import ENTER, MAX_SLOPE, MISS, SHAPE_CODES
+from ..layout import ENTER, MAX_SLOPE, MESH, MISS, SHAPE_CODES
 from .boxes import box_entry, inverse_direction
 from .row import CanonicalHit, Shape, interval_event
 
@@ -126,7 +126,7 @@ def _first_event_local(b, prim, plane_buf, o, d, t_start, mesh, kinds):
     own = dr.zeros(b.Bool, width)
     for row in _EVENT_ROWS:
         # A mesh's event walks its BVH: only trees with meshes pass their buffers.
-        if dr.hint(row.code in present and (mesh is not None or not row.event_normal), mode="scalar"):
+        if dr.hint(row.code in present and (mesh is not None or row.code != MESH), mode="scalar"):
             own |= shape == row.code
             if shape == row.code:
                 if dr.hint(row.event_normal, mode="scalar"):
